@@ -1,0 +1,1 @@
+"""Runtime: device drivers, timing, 3D assembly, recording and replay."""
