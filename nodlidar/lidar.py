@@ -43,6 +43,10 @@ class LidarModel:
         Housing height [m] (CAD envelope).
     scan_plane_height_m : float
         Height of the scan plane above the housing base [m] (CAD envelope).
+    head_radius_m : float
+        Radius of the optical head around the axis at scan-plane height [m]: the part of
+        the housing that mirrors must clear and reflected beams must not enter. The square
+        body lies below the scan plane.
     range_noise : tuple[float, float, float]
         Range noise model ``(sigma_near_m, knee_m, rel_far)``: 1-sigma of
         ``sigma_near_m`` up to ``knee_m``, then ``rel_far * range`` beyond.
@@ -59,6 +63,7 @@ class LidarModel:
     housing_half_width_m: float
     housing_height_m: float
     scan_plane_height_m: float
+    head_radius_m: float
     range_noise: tuple[float, float, float] = (0.01, 1.0, 0.01)
 
     def __post_init__(self) -> None:
@@ -105,8 +110,8 @@ class LidarModel:
 
     @property
     def housing_radius_m(self) -> float:
-        """Radius of the cylinder circumscribing the housing [m]."""
-        return float(np.sqrt(2.0) * self.housing_half_width_m)
+        """Obstruction radius at scan-plane height [m] (alias of :attr:`head_radius_m`)."""
+        return self.head_radius_m
 
     def bearing_from_step(self, step: np.ndarray | int | float) -> np.ndarray:
         """Bearing of ``step`` [rad] (anticlockwise from +x). Any shape; fractional ok."""
@@ -145,7 +150,9 @@ class LidarModel:
 
 # Values from each model's SCIP 2.0 PP reply (../shared/reference/scip2.md §1.5 for the
 # URG-04LX; UTM-30LX-EW and UST-10LX from public device PP replies). Housing envelopes
-# from the data sheets (URG-04LX 50x50x70 mm, UTM-30LX 60x60x87 mm, UST-10LX 50x50x70 mm).
+# from the data sheets (URG-04LX 50x50x70 mm, UTM-30LX 60x60x87 mm, UST-10LX 50x50x70 mm);
+# the optical-head radii and scan-plane heights are approximate envelopes read off the
+# outline drawings (an assumption; a user with a different head sets their own model).
 # The URG-04LX accuracy is +-30 mm to 1 m and +-3 % beyond (data sheet); we read the
 # bound as 3 sigma. Noise for the others is their data sheet's figure read the same way.
 LIDAR_MODELS: dict[str, LidarModel] = {
@@ -155,19 +162,19 @@ LIDAR_MODELS: dict[str, LidarModel] = {
             name="URG-04LX", steps_per_rev=1024, step_min=44, step_max=725, step_front=384,
             rpm=600.0, range_min_m=0.020, range_max_m=5.600,
             housing_half_width_m=0.025, housing_height_m=0.070, scan_plane_height_m=0.0415,
-            range_noise=(0.010, 1.0, 0.01),
+            head_radius_m=0.020, range_noise=(0.010, 1.0, 0.01),
         ),
         LidarModel(
             name="UTM-30LX", steps_per_rev=1440, step_min=0, step_max=1080, step_front=540,
             rpm=2400.0, range_min_m=0.023, range_max_m=60.0,
             housing_half_width_m=0.030, housing_height_m=0.087, scan_plane_height_m=0.0655,
-            range_noise=(0.010, 10.0, 0.001),
+            head_radius_m=0.025, range_noise=(0.010, 10.0, 0.001),
         ),
         LidarModel(
             name="UST-10LX", steps_per_rev=1440, step_min=0, step_max=1080, step_front=540,
             rpm=2400.0, range_min_m=0.020, range_max_m=30.0,
             housing_half_width_m=0.025, housing_height_m=0.070, scan_plane_height_m=0.0485,
-            range_noise=(0.0133, 30.0, 0.0),
+            head_radius_m=0.022, range_noise=(0.0133, 30.0, 0.0),
         ),
     )
 }

@@ -1,0 +1,367 @@
+"""The one geometry core: rotations, exact reflection, finite mirror patches, perturbations.
+
+Everything that needs a mirror - the solver, the BeamModel, the simulator scene, the CAD
+export, calibration - uses :class:`MirrorPatch` and the functions here. SI units: metres,
+radians. Frames and signs are in docs/conventions.md.
+
+A mirror is a flat rectangle in 3D (head frame)::
+
+    p(s, z) = origin + s * along + z * up,   s in [s_min, s_max],  z in [z_min, z_max]
+
+``origin`` is the mirror's anchor point (where its anchor beam hits it, in the scan plane
+for an unperturbed mirror), ``normal`` the unit normal on the reflecting side (towards the
+lidar), ``along`` the unit in-plane direction that stays horizontal for a vertical mirror,
+``up`` = ``normal x along``. The hinge axis (about which the lift motor turns the mirror,
+and about which the paper's tilt error Delta-beta acts) is the line ``origin + hinge_z*up +
+s*along``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .errors import ParameterError, require
+
+__all__ = [
+    "unit",
+    "reflect",
+    "matrix_from_axis_angle",
+    "rot_y",
+    "rot_z",
+    "MirrorPatch",
+    "Perturbation",
+    "ray_plane_distance",
+    "ray_circle_exit",
+    "ray_cylinder_hit",
+    "bearing_of",
+]
+
+_EPS = 1e-12
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    """Normalise vectors along the last axis. ``(..., 3) -> (..., 3)``."""
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def reflect(d: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Exact specular reflection ``d' = d - 2 (d.n) n``.
+
+    Parameters
+    ----------
+    d : (..., 3) float
+        Incident directions.
+    n : (..., 3) or (3,) float
+        Unit mirror normals (either sign).
+    """
+    d = np.asarray(d, dtype=float)
+    n = np.asarray(n, dtype=float)
+    return d - 2.0 * np.sum(d * n, axis=-1, keepdims=True) * n
+
+
+def matrix_from_axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation matrix (3, 3) of ``angle`` [rad] about unit ``axis`` (right hand, active)."""
+    a = unit(np.asarray(axis, dtype=float))
+    x, y, z = a
+    c, s = np.cos(angle), np.sin(angle)
+    C = 1.0 - c
+    return np.array(
+        [
+            [c + x * x * C, x * y * C - z * s, x * z * C + y * s],
+            [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
+            [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
+        ]
+    )
+
+
+def rot_z(angle: np.ndarray | float) -> np.ndarray:
+    """Rotation(s) about +z (yaw). Scalar -> (3, 3); ``(n,)`` -> ``(n, 3, 3)``."""
+    a = np.asarray(angle, dtype=float)
+    c, s = np.cos(a), np.sin(a)
+    o, i = np.zeros_like(a), np.ones_like(a)
+    return np.stack([np.stack([c, -s, o], -1), np.stack([s, c, o], -1), np.stack([o, o, i], -1)], -2)
+
+
+def rot_y(angle: np.ndarray | float) -> np.ndarray:
+    """Rotation(s) about +y (pitch; positive tips +x down). Scalar -> (3,3); (n,) -> (n,3,3)."""
+    a = np.asarray(angle, dtype=float)
+    c, s = np.cos(a), np.sin(a)
+    o, i = np.zeros_like(a), np.ones_like(a)
+    return np.stack([np.stack([c, o, s], -1), np.stack([o, i, o], -1), np.stack([-s, o, c], -1)], -2)
+
+
+def bearing_of(p: np.ndarray) -> np.ndarray:
+    """Bearing ``atan2(y, x)`` [rad] of points ``(..., 3)`` or ``(..., 2)``."""
+    p = np.asarray(p, dtype=float)
+    return np.arctan2(p[..., 1], p[..., 0])
+
+
+def ray_plane_distance(
+    origins: np.ndarray, dirs: np.ndarray, point: np.ndarray, normal: np.ndarray
+) -> np.ndarray:
+    """Distance ``t`` along each ray to a plane; ``inf`` if parallel or behind.
+
+    origins, dirs : (n, 3); point, normal : (3,). Returns (n,) float.
+    """
+    denom = dirs @ normal
+    num = (point - origins) @ normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = num / denom
+    return np.where((np.abs(denom) > _EPS) & (t > 1e-12), t, np.inf)
+
+
+def ray_circle_exit(origins: np.ndarray, dirs: np.ndarray, radius: float) -> np.ndarray:
+    """Distance along each ray (in the xy plane) to where it leaves the circle |p| = radius.
+
+    Only x and y are used, so for 3D rays this is the exit from the vertical cylinder.
+    origins, dirs : (n, 2|3). Returns (n,) float (nan if the ray never reaches it).
+    """
+    o, d = origins[..., :2], dirs[..., :2]
+    a = np.sum(d * d, -1)
+    b = 2 * np.sum(o * d, -1)
+    c = np.sum(o * o, -1) - radius**2
+    disc = b * b - 4 * a * c
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = (-b + np.sqrt(disc)) / (2 * a)
+    return np.where((disc >= 0) & (t > 0), t, np.nan)
+
+
+def ray_cylinder_hit(
+    origins: np.ndarray, dirs: np.ndarray, radius: float, t_max: np.ndarray | float
+) -> np.ndarray:
+    """Whether each ray enters the vertical cylinder ``x^2+y^2 <= radius^2`` for ``0 < t < t_max``.
+
+    Used to check reflected beams against the lidar housing. Returns (n,) bool.
+    """
+    o, d = origins[..., :2], dirs[..., :2]
+    a = np.sum(d * d, -1)
+    b = 2 * np.sum(o * d, -1)
+    c = np.sum(o * o, -1) - radius**2
+    disc = b * b - 4 * a * c
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t0 = (-b - np.sqrt(disc)) / (2 * a)
+        t1 = (-b + np.sqrt(disc)) / (2 * a)
+    inside_start = c < 0
+    enters = (disc > 0) & (t1 > 1e-9) & (t0 < t_max)
+    return np.where(inside_start, True, enters)
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    """A mirror's mounting error, as in the paper's Table I.
+
+    Attributes
+    ----------
+    dalpha : float
+        Yaw error [rad]: rotation of the mirror about the vertical axis through the lidar
+        origin (keeps its perpendicular distance, changes the normal's azimuth ``alpha``).
+    dbeta : float
+        Tilt error [rad]: rotation about the mirror's hinge axis (right hand about
+        ``along``). Tilts reflected beams out of the scan plane by about ``2*dbeta``.
+    dd : float
+        Offset [m] along the outward normal (away from the lidar): ``d -> d + dd``.
+    """
+
+    dalpha: float = 0.0
+    dbeta: float = 0.0
+    dd: float = 0.0
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.dalpha, self.dbeta, self.dd])
+
+    @classmethod
+    def from_array(cls, a: np.ndarray) -> Perturbation:
+        return cls(float(a[0]), float(a[1]), float(a[2]))
+
+
+def _vec(v, name: str) -> tuple[float, float, float]:
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ParameterError(name, v, "a finite 3-vector")
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+@dataclass(frozen=True)
+class MirrorPatch:
+    """A finite flat rectangular mirror (see module docstring for the parametrisation).
+
+    Vectors are stored as tuples so the dataclass is hashable and truly frozen; use the
+    ``*_`` array properties in computations.
+    """
+
+    name: str
+    origin: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    along: tuple[float, float, float]
+    s_min: float
+    s_max: float
+    z_min: float
+    z_max: float
+    hinge_z: float = 0.0
+    perturbation: Perturbation = field(default_factory=Perturbation)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "origin", _vec(self.origin, f"{self.name}.origin"))
+        n = np.asarray(_vec(self.normal, f"{self.name}.normal"))
+        a = np.asarray(_vec(self.along, f"{self.name}.along"))
+        require(abs(np.linalg.norm(n) - 1) < 1e-9, f"{self.name}.normal", self.normal, "unit length")
+        require(abs(np.linalg.norm(a) - 1) < 1e-9, f"{self.name}.along", self.along, "unit length")
+        require(abs(n @ a) < 1e-9, f"{self.name}.along", self.along, "perpendicular to normal")
+        object.__setattr__(self, "normal", tuple(map(float, n)))
+        object.__setattr__(self, "along", tuple(map(float, a)))
+        require(self.s_max > self.s_min, f"{self.name}.s_max", self.s_max, f"> s_min = {self.s_min}")
+        require(self.z_max > self.z_min, f"{self.name}.z_max", self.z_max, f"> z_min = {self.z_min}")
+
+    # -- arrays --------------------------------------------------------------------
+    @property
+    def origin_(self) -> np.ndarray:
+        return np.asarray(self.origin)
+
+    @property
+    def normal_(self) -> np.ndarray:
+        return np.asarray(self.normal)
+
+    @property
+    def along_(self) -> np.ndarray:
+        return np.asarray(self.along)
+
+    @property
+    def up_(self) -> np.ndarray:
+        return np.cross(self.normal_, self.along_)
+
+    @property
+    def length(self) -> float:
+        """Patch length along ``along`` [m]."""
+        return self.s_max - self.s_min
+
+    @property
+    def height(self) -> float:
+        """Patch height along ``up`` [m]."""
+        return self.z_max - self.z_min
+
+    @property
+    def standoff(self) -> float:
+        """Perpendicular distance from the lidar origin to the mirror plane, ``d`` [m]."""
+        return float(abs(self.origin_ @ self.normal_))
+
+    @property
+    def normal_azimuth(self) -> float:
+        """Azimuth ``alpha`` of the outward normal (away from the lidar) [rad]."""
+        n_out = -self.normal_ if self.origin_ @ self.normal_ < 0 else self.normal_
+        return float(np.arctan2(n_out[1], n_out[0]))
+
+    def corners(self) -> np.ndarray:
+        """The four corners (4, 3), order (s_min,z_min), (s_max,z_min), (s_max,z_max), (s_min,z_max)."""
+        o, a, u = self.origin_, self.along_, self.up_
+        return np.array(
+            [o + s * a + z * u for s, z in
+             ((self.s_min, self.z_min), (self.s_max, self.z_min),
+              (self.s_max, self.z_max), (self.s_min, self.z_max))]
+        )
+
+    def point(self, s: np.ndarray | float, z: np.ndarray | float = 0.0) -> np.ndarray:
+        """Points at patch coordinates ``(s, z)``, shape ``broadcast(s, z) + (3,)``."""
+        s = np.asarray(s, dtype=float)[..., None]
+        z = np.asarray(z, dtype=float)[..., None]
+        return self.origin_ + s * self.along_ + z * self.up_
+
+    def intersect(
+        self, origins: np.ndarray, dirs: np.ndarray, *, finite: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Intersect rays with the mirror.
+
+        Parameters
+        ----------
+        origins, dirs : (n, 3) float
+            Ray origins and unit directions.
+        finite : bool
+            If True, hits outside the rectangle count as misses.
+
+        Returns
+        -------
+        t : (n,) float
+            Distance along each ray to the plane (``inf`` where missed).
+        s, z : (n,) float
+            Patch coordinates of the hit point.
+        """
+        origins = np.atleast_2d(origins)
+        dirs = np.atleast_2d(dirs)
+        t = ray_plane_distance(origins, dirs, self.origin_, self.normal_)
+        finite_t = np.where(np.isfinite(t), t, 0.0)
+        rel = origins + finite_t[:, None] * dirs - self.origin_
+        s = rel @ self.along_
+        z = rel @ self.up_
+        if finite:
+            inside = (s >= self.s_min) & (s <= self.s_max) & (z >= self.z_min) & (z <= self.z_max)
+            t = np.where(inside, t, np.inf)
+        return t, s, z
+
+    # -- rigid motions -----------------------------------------------------------------
+    def transformed(self, R: np.ndarray, t: np.ndarray) -> MirrorPatch:
+        """The patch moved by ``p -> R p + t`` (extents unchanged)."""
+        R = np.asarray(R, dtype=float)
+        return replace(
+            self,
+            origin=tuple(R @ self.origin_ + np.asarray(t, dtype=float)),
+            normal=tuple(unit(R @ self.normal_)),
+            along=tuple(unit(R @ self.along_)),
+        )
+
+    def rotated_about_hinge(self, angle: float) -> MirrorPatch:
+        """The patch turned by ``angle`` [rad] about its hinge axis (right hand about ``along``).
+
+        ``hinge_z`` is kept in the patch's own coordinates, so repeated calls compose.
+        """
+        R = matrix_from_axis_angle(self.along_, angle)
+        pivot = self.origin_ + self.hinge_z * self.up_
+        moved = self.transformed(R, pivot - R @ pivot)
+        return moved
+
+    def perturbed(self, p: Perturbation) -> MirrorPatch:
+        """Apply a mounting error: tilt about the hinge, then offset, then yaw about O.
+
+        This is the only place perturbations are applied. The result remembers the
+        perturbation (composed additively, which is exact for one application on a
+        nominal mirror and first-order otherwise).
+        """
+        m = self.rotated_about_hinge(p.dbeta)
+        n_out = m.normal_ if m.origin_ @ m.normal_ > 0 else -m.normal_
+        m = m.transformed(np.eye(3), p.dd * n_out)
+        m = m.transformed(rot_z(p.dalpha), np.zeros(3))
+        total = Perturbation(*(self.perturbation.as_array() + p.as_array()))
+        return replace(m, perturbation=total)
+
+
+def reflect_rays(
+    origins: np.ndarray, dirs: np.ndarray, point: np.ndarray, normal: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reflect rays on the (infinite) plane through ``point`` with unit ``normal``.
+
+    Returns
+    -------
+    t : (n,) float
+        Distance from each origin to the plane (``inf`` if it never gets there).
+    hit : (n, 3) float
+        Hit points.
+    out : (n, 3) float
+        Reflected unit directions.
+    """
+    origins = np.atleast_2d(np.asarray(origins, dtype=float))
+    dirs = np.atleast_2d(np.asarray(dirs, dtype=float))
+    t = ray_plane_distance(origins, dirs, np.asarray(point, float), np.asarray(normal, float))
+    hit = origins + np.where(np.isfinite(t), t, np.nan)[:, None] * dirs
+    return t, hit, reflect(dirs, np.asarray(normal, float))
+
+
+def arc_point(hit: np.ndarray, out: np.ndarray, radius: float) -> np.ndarray:
+    """Where rays starting at ``hit`` along ``out`` cross the cylinder |xy| = radius. (n, 3)."""
+    t = ray_circle_exit(hit, out, radius)
+    return hit + t[:, None] * out
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray:
+    """Wrap angles to [-pi, pi)."""
+    return np.mod(np.asarray(a, dtype=float) + np.pi, 2 * np.pi) - np.pi
