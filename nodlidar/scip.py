@@ -1,0 +1,1210 @@
+"""SCIP 2.0 codec (Hokuyo URG/UTM/UST laser scanners): pure functions and types, no I/O.
+
+The device and host exchange LF-terminated text lines (Hokuyo, "Communication Protocol
+Specification For SCIP2.0 Standard", C-42-03320B, §6-§9):
+
+* host -> sensor: ``<2-char command>[parameters][;<string>]<LF|CR|CRLF>``;
+* sensor -> host: the echo of the command line, a status line ``<2 chars><sum>``, zero or
+  more data lines ``<content><sum>`` and an empty line, i.e. every message ends ``LF LF``.
+
+The checksum of a line is ``(sum of the content bytes) & 0x3F`` plus ``0x30``. Numbers are
+sent in 2-, 3- or 4-character groups of 6 bits each (``+0x30``), MSB first. Range data are
+cut into lines of 64 characters, so values straddle line ends: the data lines are joined
+(without their sums) before decoding, which here is a single numpy operation over the whole
+block.
+
+Units: ranges stay in integer millimetres (``*_mm``) as the protocol sends them, device
+timestamps in integer milliseconds (``*_ms``, a 24-bit counter). Conversion to metres
+happens at the codec edge (:func:`ranges_mm_to_m`, :meth:`SensorParams.to_lidar_model`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import warnings
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import DeviceError, ParameterError, ProtocolError
+from .lidar import LIDAR_MODELS, LidarModel
+
+__all__ = [
+    "LF",
+    "DATA_LINE_CHARS",
+    "TIMESTAMP_MODULUS_MS",
+    "ScipChecksumWarning",
+    "ScipStatusError",
+    "ScipRequestError",
+    "checksum",
+    "with_checksum",
+    "verify_line",
+    "encode_value",
+    "decode_value",
+    "encode_values",
+    "decode_values",
+    "encode_data_block",
+    "decode_data_block",
+    "encode_message",
+    "encode_scan_reply",
+    "encode_info_reply",
+    "info_line",
+    "split_command",
+    "command",
+    "DistanceRequest",
+    "gd_command",
+    "gs_command",
+    "md_command",
+    "ms_command",
+    "ScipReply",
+    "ScipFramer",
+    "parse_reply",
+    "parse_status_line",
+    "status_meaning",
+    "check_status",
+    "ScanFrame",
+    "decode_scan",
+    "parse_info",
+    "VersionInfo",
+    "SensorParams",
+    "SensorState",
+    "parse_version",
+    "parse_params",
+    "parse_state",
+    "RANGE_ERROR_CODES_URG04LX",
+    "RANGE_ERROR_CODES_UTM30LX",
+    "range_error_mask",
+    "range_error_meaning",
+    "ranges_mm_to_m",
+]
+
+LF = b"\n"
+#: Encoded characters per data line before the sum (SPEC p.11, 13).
+DATA_LINE_CHARS = 64
+#: The device timer is 24 bits wide with 1 ms resolution (SPEC p.12).
+TIMESTAMP_MODULUS_MS = 1 << 24
+
+_CHAR0 = 0x30
+_CHAR_MAX = 0x6F
+_TAG_RE = re.compile(r"[A-Za-z0-9 ._+@]*")
+_TAG_MAX = 16
+
+
+class ScipChecksumWarning(UserWarning):
+    """A lenient (VV/PP/II text) line did not verify under any known checksum rule."""
+
+
+class ScipStatusError(DeviceError):
+    """The device answered a command with an error status.
+
+    Attributes
+    ----------
+    command : str
+        The 2-character command (``"GD"``, ``"BM"`` ...).
+    status : str
+        The 2-character status code (``"10"``, ``"0E"`` ...), or 1 char in SCIP 1.1 style.
+    meaning : str
+        The spec's meaning of that status for that command.
+    """
+
+    def __init__(self, command: str, status: str, meaning: str | None = None):
+        self.command = command
+        self.status = status
+        self.meaning = meaning if meaning is not None else status_meaning(command, status)
+        super().__init__(
+            f"{command}: device status {status!r} ({self.meaning}); allowed: '00' or '99'"
+        )
+
+
+class ScipRequestError(ProtocolError):
+    """A command line is malformed; ``status`` is what a SCIP 2.0 device answers."""
+
+    def __init__(self, status: str, field_name: str, value: object, allowed: str):
+        self.status = status
+        self.field = field_name
+        self.value = value
+        self.allowed = allowed
+        super().__init__(f"{field_name} = {value!r} is invalid; allowed: {allowed}")
+
+
+# ---------------------------------------------------------------------------------------
+# checksums and character encodings (SPEC §6, §7)
+# ---------------------------------------------------------------------------------------
+def checksum(content: bytes | str) -> bytes:
+    """Checksum character of a line's content.
+
+    Parameters
+    ----------
+    content : bytes or str
+        Line content without the sum and without LF (ASCII).
+
+    Returns
+    -------
+    bytes
+        One byte in ``b"0"..b"o"``: ``(sum(content) & 0x3F) + 0x30``.
+    """
+    if isinstance(content, str):
+        content = content.encode("ascii")
+    return bytes(((sum(content) & 0x3F) + _CHAR0,))
+
+
+def with_checksum(content: bytes | str) -> bytes:
+    """``content`` followed by its checksum character (no LF)."""
+    if isinstance(content, str):
+        content = content.encode("ascii")
+    return content + checksum(content)
+
+
+def verify_line(line: bytes) -> bytes:
+    """Strictly check a ``<content><sum>`` line; return the content.
+
+    Raises
+    ------
+    ProtocolError
+        If the line is empty or its last byte is not the content's checksum.
+    """
+    if len(line) < 1:
+        raise ProtocolError("scip line = b'' is invalid; allowed: content followed by a sum")
+    content, got = line[:-1], line[-1:]
+    want = checksum(content)
+    if got != want:
+        raise ProtocolError(
+            f"scip checksum of {bytes(line)[:70]!r} = {got!r} is invalid; allowed: {want!r}"
+        )
+    return bytes(content)
+
+
+def encode_value(value: int, n_chars: int) -> bytes:
+    """Encode one non-negative integer in ``n_chars`` 6-bit characters (SPEC §6).
+
+    Raises
+    ------
+    ParameterError
+        If ``n_chars`` is not 2, 3 or 4, or ``value`` does not fit.
+    """
+    return encode_values(np.asarray([value]), n_chars)
+
+
+def decode_value(chars: bytes | str) -> int:
+    """Decode one 2/3/4-character group (any length 1..4) to an integer."""
+    if isinstance(chars, str):
+        chars = chars.encode("ascii")
+    return int(decode_values(chars, len(chars))[0])
+
+
+def _check_nchars(n_chars: int) -> None:
+    if n_chars not in (1, 2, 3, 4):
+        raise ParameterError("scip.n_chars", n_chars, "2, 3 or 4 (1 also accepted)")
+
+
+def encode_values(values: np.ndarray | Sequence[int], n_chars: int) -> bytes:
+    """Encode integers as concatenated ``n_chars``-character groups (vectorised).
+
+    Parameters
+    ----------
+    values : array_like of int, shape (n,)
+        Values in ``0 .. 64**n_chars - 1`` (e.g. ranges in mm).
+    n_chars : int
+        2 (GS/MS ranges), 3 (GD/MD ranges) or 4 (timestamps).
+
+    Returns
+    -------
+    bytes
+        ``n * n_chars`` ASCII characters.
+    """
+    _check_nchars(n_chars)
+    v = np.asarray(values)
+    if v.size and not np.issubdtype(v.dtype, np.integer):
+        raise ParameterError("scip.values.dtype", str(v.dtype), "an integer array")
+    v = v.astype(np.int64).ravel()
+    top = 1 << (6 * n_chars)
+    if v.size and (v.min() < 0 or v.max() >= top):
+        bad = v[(v < 0) | (v >= top)][0]
+        raise ParameterError("scip.value", int(bad), f"0..{top - 1} for {n_chars}-char encoding")
+    shifts = 6 * np.arange(n_chars - 1, -1, -1)
+    chars = ((v[:, None] >> shifts[None, :]) & 0x3F) + _CHAR0
+    return chars.astype(np.uint8).tobytes()
+
+
+def decode_values(data: bytes | bytearray | memoryview, n_chars: int) -> np.ndarray:
+    """Decode a joined block of ``n_chars``-character groups (vectorised).
+
+    Parameters
+    ----------
+    data : bytes
+        The concatenated data characters, sums and LFs already removed.
+    n_chars : int
+        Characters per value (2, 3 or 4).
+
+    Returns
+    -------
+    numpy.ndarray, shape (len(data) // n_chars,), int32
+
+    Raises
+    ------
+    ProtocolError
+        If the length is not a multiple of ``n_chars`` or a character is outside
+        ``'0'..'o'``.
+    """
+    _check_nchars(n_chars)
+    a = np.frombuffer(data, dtype=np.uint8)
+    if a.size % n_chars:
+        raise ProtocolError(
+            f"scip data length = {a.size} is invalid; allowed: a multiple of {n_chars}"
+        )
+    if a.size and (a.min() < _CHAR0 or a.max() > _CHAR_MAX):
+        raise ProtocolError("scip data character is invalid; allowed: '0'..'o' (0x30-0x6F)")
+    g = (a.reshape(-1, n_chars).astype(np.int32) - _CHAR0)
+    out = g[:, 0].copy()
+    for i in range(1, n_chars):  # at most 3 whole-array operations
+        out <<= 6
+        out |= g[:, i]
+    return out
+
+
+def _line_sums(block: np.ndarray) -> np.ndarray:
+    """Checksum chars of each row of a 2-D uint8 array."""
+    return ((block.sum(axis=1, dtype=np.int64) & 0x3F) + _CHAR0).astype(np.uint8)
+
+
+def encode_data_block(encoded: bytes, width: int = DATA_LINE_CHARS) -> bytes:
+    """Cut encoded characters into ``width``-char lines, each + sum + LF (vectorised).
+
+    Returns ``b""`` for empty input (no data lines).
+    """
+    a = np.frombuffer(encoded, dtype=np.uint8)
+    n_full, rest = divmod(a.size, width)
+    parts = []
+    if n_full:
+        full = a[: n_full * width].reshape(n_full, width)
+        lines = np.empty((n_full, width + 2), dtype=np.uint8)
+        lines[:, :width] = full
+        lines[:, width] = _line_sums(full)
+        lines[:, width + 1] = 0x0A
+        parts.append(lines.tobytes())
+    if rest:
+        tail = bytes(a[n_full * width:])
+        parts.append(with_checksum(tail) + LF)
+    return b"".join(parts)
+
+
+def _verify_lines(lines: Sequence[bytes]) -> np.ndarray:
+    """Strictly verify many ``<content><sum>`` lines at once; return the joined content."""
+    if not lines:
+        return np.zeros(0, dtype=np.uint8)
+    lengths = np.fromiter((len(x) for x in lines), dtype=np.int64, count=len(lines))
+    if lengths.min() < 2:
+        raise ProtocolError("scip data line is empty; allowed: content followed by a sum")
+    a = np.frombuffer(b"".join(lines), dtype=np.uint8)
+    ends = np.cumsum(lengths)
+    starts = ends - lengths
+    totals = np.add.reduceat(a.astype(np.int64), starts)
+    sum_chars = a[ends - 1].astype(np.int64)
+    want = ((totals - sum_chars) & 0x3F) + _CHAR0
+    bad = np.flatnonzero(want != sum_chars)
+    if bad.size:
+        i = int(bad[0])
+        raise ProtocolError(
+            f"scip checksum of data line {i} = {chr(sum_chars[i])!r} is invalid; "
+            f"allowed: {chr(want[i])!r}"
+        )
+    keep = np.ones(a.size, dtype=bool)
+    keep[ends - 1] = False
+    return a[keep]
+
+
+def decode_data_block(lines: Sequence[bytes], n_chars: int) -> np.ndarray:
+    """Verify data lines (each ``<content><sum>``, no LF), join and decode them.
+
+    Returns
+    -------
+    numpy.ndarray, shape (n,), int32
+    """
+    return decode_values(_verify_lines(lines).tobytes(), n_chars)
+
+
+# ---------------------------------------------------------------------------------------
+# messages sensor -> host
+# ---------------------------------------------------------------------------------------
+def _b(s: bytes | str) -> bytes:
+    return s if isinstance(s, bytes) else s.encode("ascii")
+
+
+def encode_message(
+    echo: bytes | str, status: str, body: Iterable[bytes] = (), *, scip1: bool = False
+) -> bytes:
+    """Assemble one reply: echo, status (+sum), body lines, terminating empty line.
+
+    Parameters
+    ----------
+    echo : bytes or str
+        The command line as the host sent it (without line ending).
+    status : str
+        Two-character status (``"00"``); with ``scip1=True`` a 1-char SCIP 1.1 status that
+        is sent without a sum.
+    body : iterable of bytes
+        Complete lines (content + sum) without LF, e.g. from :func:`info_line`; or raw
+        already-terminated blocks when they end with LF (e.g. :func:`encode_data_block`).
+    """
+    out = [_b(echo), LF, _b(status) if scip1 else with_checksum(status), LF]
+    for line in body:
+        out.append(line)
+        if not line.endswith(LF):
+            out.append(LF)
+    out.append(LF)
+    return b"".join(out)
+
+
+def encode_scan_reply(
+    echo: bytes | str,
+    status: str,
+    timestamp_ms: int,
+    ranges_mm: np.ndarray,
+    n_chars: int,
+) -> bytes:
+    """Encode a GD/GS/MD/MS data message.
+
+    Parameters
+    ----------
+    echo : bytes or str
+        Echo line (for MD/MS the command with the remaining count in its last 2 digits).
+    status : str
+        ``"00"`` for GD/GS, ``"99"`` for MD/MS scan messages.
+    timestamp_ms : int
+        Device timer [ms]; reduced modulo 2**24.
+    ranges_mm : numpy.ndarray, shape (n,), int
+        Ranges [mm] or error codes (< DMIN).
+    n_chars : int
+        3 (GD/MD) or 2 (GS/MS).
+    """
+    ts = with_checksum(encode_value(int(timestamp_ms) % TIMESTAMP_MODULUS_MS, 4))
+    data = encode_data_block(encode_values(ranges_mm, n_chars))
+    return encode_message(echo, status, [ts, data])
+
+
+def info_line(key: str, value: str) -> bytes:
+    """``KEY:VALUE;<sum>`` with the sum over ``KEY:VALUE`` (``;`` excluded, WIKI)."""
+    content = f"{key}:{value}".encode("ascii")
+    return content + b";" + checksum(content)
+
+
+def encode_info_reply(echo: bytes | str, items: Iterable[tuple[str, str]]) -> bytes:
+    """Encode a VV/PP/II reply from ``(key, value)`` pairs (status ``00``)."""
+    return encode_message(echo, "00", [info_line(k, v) for k, v in items])
+
+
+# ---------------------------------------------------------------------------------------
+# commands host -> sensor
+# ---------------------------------------------------------------------------------------
+def _check_tag(tag: str | None, *, as_request: bool = False) -> None:
+    if tag is None:
+        return
+    if len(tag) > _TAG_MAX:
+        if as_request:
+            raise ScipRequestError("0G", "scip.tag", tag, "at most 16 characters")
+        raise ParameterError("scip.tag", tag, "at most 16 characters")
+    if not _TAG_RE.fullmatch(tag):
+        if as_request:
+            raise ScipRequestError("0H", "scip.tag", tag, "letters, digits, space and . _ + @")
+        raise ParameterError("scip.tag", tag, "letters, digits, space and . _ + @")
+
+
+def command(code: str, params: str = "", tag: str | None = None) -> bytes:
+    """Build a command line ``<code><params>[;tag]LF``.
+
+    Parameters
+    ----------
+    code : str
+        ``"BM"``, ``"TM"``, ``"SCIP2.0"`` ...
+    params : str
+        Parameter characters (e.g. ``"1"`` for ``TM1``).
+    tag : str, optional
+        The "string characters" echoed back (<= 16 of letters, digits, `` ._+@``).
+    """
+    _check_tag(tag)
+    line = f"{code}{params}" + (f";{tag}" if tag is not None else "")
+    return line.encode("ascii") + LF
+
+
+def split_command(line: bytes | str) -> tuple[str, str, str | None]:
+    """Split a command line into ``(code, params, tag)``.
+
+    Line endings (LF, CR, CRLF) are stripped; ``code`` is the first 2 characters (3 for
+    ``%XX``), or ``"SCIP2.0"``.
+    """
+    s = line.decode("ascii", "replace") if isinstance(line, (bytes, bytearray)) else line
+    s = s.rstrip("\r\n")
+    tag = None
+    if ";" in s:
+        s, tag = s.split(";", 1)
+    if s.startswith("SCIP"):
+        return s[:7], s[7:], tag
+    n = 3 if s.startswith("%") else 2
+    return s[:n], s[n:], tag
+
+
+_N_CHARS = {"GD": 3, "MD": 3, "GS": 2, "MS": 2}
+
+
+@dataclass(frozen=True)
+class DistanceRequest:
+    """A GD/GS/MD/MS request (SPEC §8.1-8.2).
+
+    Attributes
+    ----------
+    command : str
+        ``"GD"``, ``"GS"``, ``"MD"`` or ``"MS"``.
+    start, end : int
+        First and last step (inclusive), 4 digits each.
+    cluster : int
+        Steps merged into one value (0..99; 0 means 1), 2 digits.
+    interval : int or None
+        MD/MS only: scans skipped between transmissions (0..9).
+    count : int or None
+        MD/MS only: number of scans (0 = until ``QT``, 1..99). In an echo of a scan
+        message this is the *remaining* count.
+    tag : str or None
+        The echoed string characters.
+    """
+
+    command: str
+    start: int
+    end: int
+    cluster: int = 1
+    interval: int | None = None
+    count: int | None = None
+    tag: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.command not in _N_CHARS:
+            raise ParameterError("scip.command", self.command, "GD, GS, MD or MS")
+        for name, v, hi in (("start", self.start, 9999), ("end", self.end, 9999),
+                            ("cluster", self.cluster, 99)):
+            if not (isinstance(v, (int, np.integer)) and 0 <= v <= hi):
+                raise ParameterError(f"scip.{name}", v, f"an integer 0..{hi}")
+        if self.end < self.start:
+            raise ParameterError("scip.end", self.end, f">= start ({self.start})")
+        if self.is_multi:
+            interval = 0 if self.interval is None else self.interval
+            count = 0 if self.count is None else self.count
+            if not 0 <= interval <= 9:
+                raise ParameterError("scip.interval", self.interval, "an integer 0..9")
+            if not 0 <= count <= 99:
+                raise ParameterError("scip.count", self.count, "0 (until QT) or 1..99")
+            object.__setattr__(self, "interval", int(interval))
+            object.__setattr__(self, "count", int(count))
+        elif self.interval is not None or self.count is not None:
+            raise ParameterError(
+                "scip.interval/count", (self.interval, self.count), "None for GD/GS"
+            )
+        _check_tag(self.tag)
+
+    @property
+    def is_multi(self) -> bool:
+        """True for MD/MS (continuous) requests."""
+        return self.command in ("MD", "MS")
+
+    @property
+    def n_chars(self) -> int:
+        """Characters per value: 3 (GD/MD) or 2 (GS/MS)."""
+        return _N_CHARS[self.command]
+
+    @property
+    def cluster_size(self) -> int:
+        """Steps per value (cluster 0 counts as 1)."""
+        return max(1, self.cluster)
+
+    @property
+    def n_values(self) -> int:
+        """Number of values in each scan message."""
+        return -(-(self.end - self.start + 1) // self.cluster_size)
+
+    @property
+    def steps(self) -> np.ndarray:
+        """First step of each value, shape ``(n_values,)`` int."""
+        return self.start + self.cluster_size * np.arange(self.n_values)
+
+    def line(self, count: int | None = None) -> str:
+        """The command line without LF; ``count`` overrides the count field (echoes)."""
+        s = f"{self.command}{self.start:04d}{self.end:04d}{self.cluster:02d}"
+        if self.is_multi:
+            c = self.count if count is None else count
+            s += f"{self.interval:01d}{c:02d}"
+        if self.tag is not None:
+            s += ";" + self.tag
+        return s
+
+    def encode(self) -> bytes:
+        """The command as bytes to send, LF terminated."""
+        return self.line().encode("ascii") + LF
+
+    def echo(self, remaining: int | None = None) -> str:
+        """The echo line of a reply (MD/MS scan messages carry the remaining count)."""
+        return self.line(remaining)
+
+    @classmethod
+    def parse(cls, line: bytes | str) -> DistanceRequest:
+        """Parse a request or echo line, checking fields like the device does.
+
+        Raises
+        ------
+        ScipRequestError
+            With the status a device answers: ``0C`` too short, ``0D`` too long,
+            ``01``..``07`` non-numeric fields, ``05`` end < start, ``0G``/``0H`` bad tag.
+        """
+        code, params, tag = split_command(line)
+        if code not in _N_CHARS:
+            raise ScipRequestError("0E", "scip.command", code, "GD, GS, MD or MS")
+        multi = code in ("MD", "MS")
+        want = 13 if multi else 10
+        if len(params) < want:
+            raise ScipRequestError("0C", f"{code}.parameters", params, f"{want} digits")
+        if len(params) > want:
+            raise ScipRequestError("0D", f"{code}.parameters", params, f"{want} digits")
+        _check_tag(tag, as_request=True)
+        fields = [("01", "start", params[0:4]), ("02", "end", params[4:8]),
+                  ("03", "cluster", params[8:10])]
+        if multi:
+            fields += [("06", "interval", params[10:11]), ("07", "count", params[11:13])]
+        vals = {}
+        for status, name, txt in fields:
+            if not (txt.isascii() and txt.isdigit()):
+                raise ScipRequestError(status, f"{code}.{name}", txt, "decimal digits")
+            vals[name] = int(txt)
+        if vals["end"] < vals["start"]:
+            raise ScipRequestError("05", f"{code}.end", vals["end"], f">= start {vals['start']}")
+        return cls(command=code, tag=tag, **vals)
+
+
+def gd_command(start: int, end: int, cluster: int = 1, tag: str | None = None) -> bytes:
+    """``GD`` (single scan, 3-char ranges) command line."""
+    return DistanceRequest("GD", start, end, cluster, tag=tag).encode()
+
+
+def gs_command(start: int, end: int, cluster: int = 1, tag: str | None = None) -> bytes:
+    """``GS`` (single scan, 2-char ranges, max 4095 mm) command line."""
+    return DistanceRequest("GS", start, end, cluster, tag=tag).encode()
+
+
+def md_command(start: int, end: int, cluster: int = 1, interval: int = 0, count: int = 0,
+               tag: str | None = None) -> bytes:
+    """``MD`` (continuous scans, 3-char ranges) command line; ``count`` 0 = until QT."""
+    return DistanceRequest("MD", start, end, cluster, interval, count, tag).encode()
+
+
+def ms_command(start: int, end: int, cluster: int = 1, interval: int = 0, count: int = 0,
+               tag: str | None = None) -> bytes:
+    """``MS`` (continuous scans, 2-char ranges) command line; ``count`` 0 = until QT."""
+    return DistanceRequest("MS", start, end, cluster, interval, count, tag).encode()
+
+
+# ---------------------------------------------------------------------------------------
+# status codes (SPEC §8, §9)
+# ---------------------------------------------------------------------------------------
+_GENERAL_STATUS = {
+    "00": "command received without error",
+    "99": "scan data",
+    "0A": "unable to create transmission data or reply command internally",
+    "0B": "buffer shortage or command repeated that is already processed",
+    "0C": "command with insufficient parameters 1",
+    "0D": "undefined command 1 (newer firmware: command too long)",
+    "0E": "undefined command 2 (newer firmware: command not defined)",
+    "0F": "command with insufficient parameters 2 (newer firmware: not supported)",
+    "0G": "string character in command exceeds 16 letters",
+    "0H": "string character has invalid letters",
+    "0I": "sensor is in firmware update mode",
+    "0L": "sensor is in an abnormal state",
+    "0M": "sensor is unstable",
+}
+_DIST_STATUS = {
+    "01": "starting step has non-numeric value",
+    "02": "end step has non-numeric value",
+    "03": "cluster count has non-numeric value",
+    "04": "end step is out of range",
+    "05": "end step is smaller than starting step",
+}
+_COMMAND_STATUS: dict[str, dict[str, str]] = {
+    "GD": {**_DIST_STATUS, "10": "laser is off"},
+    "MD": {**_DIST_STATUS, "06": "scan interval has non-numeric value",
+           "07": "number of scans has non-numeric value",
+           "98": "resumption of process after confirming normal laser operation"},
+    "BM": {"01": "unable to control due to laser malfunction", "02": "laser is already on"},
+    "TM": {"01": "invalid control code", "02": "adjust mode on command received when "
+           "sensor's adjust mode is already on", "03": "adjust mode off command received "
+           "when sensor's adjust mode is already off", "04": "adjust mode is off when "
+           "requested for time"},
+    "SS": {"01": "bit rate has non-numeric value", "02": "invalid bit rate",
+           "03": "sensor is already running at that bit rate",
+           "04": "not compatible with the sensor model"},
+    "CR": {"01": "invalid speed", "02": "speed out of range",
+           "03": "motor is already running at that speed",
+           "04": "not compatible with the sensor model"},
+    "HS": {"01": "invalid parameter", "02": "already running in the requested mode",
+           "03": "incompatible with current sensor model"},
+    "SCIP2.0": {"0": "switched to SCIP 2.0", "E": "command not understood (SCIP 1.1)"},
+}
+_COMMAND_STATUS["GS"] = _COMMAND_STATUS["GD"]
+_COMMAND_STATUS["MS"] = _COMMAND_STATUS["MD"]
+
+
+def status_meaning(command_code: str, status: str) -> str:
+    """The spec's meaning of ``status`` in reply to ``command_code`` (best effort)."""
+    table = _COMMAND_STATUS.get(command_code, {})
+    if status in table:
+        return table[status]
+    if status in _GENERAL_STATUS:
+        return _GENERAL_STATUS[status]
+    if len(status) == 1:
+        return "SCIP 1.1 status " + ("ok" if status == "0" else "error")
+    if status.isdigit():
+        n = int(status)
+        if command_code in ("MD", "MS") and 21 <= n <= 49:
+            return "processing stopped to verify the error"
+        if 50 <= n <= 98:
+            return "hardware trouble (laser, motor malfunction etc.)"
+    return "undocumented status"
+
+
+def parse_status_line(line: bytes) -> tuple[str, bool]:
+    """Parse a status line; return ``(status, scip1)``.
+
+    A 3-byte line is a SCIP 2.0 status + sum (verified strictly); a 1-byte line is a
+    SCIP 1.1 status (no sum).
+
+    Raises
+    ------
+    ProtocolError
+        Wrong length or checksum.
+    """
+    if len(line) == 3:
+        return verify_line(line).decode("ascii"), False
+    if len(line) == 1 and 0x20 < line[0] < 0x7F:
+        return line.decode("ascii"), True
+    raise ProtocolError(
+        f"scip status line = {bytes(line)[:20]!r} is invalid; allowed: 2 chars + sum "
+        "(or 1 char in SCIP 1.1)"
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# reply parsing
+# ---------------------------------------------------------------------------------------
+_STRICT_CODES = ("GD", "GS", "MD", "MS", "TM", "ME", "GE", "HD", "ND")
+
+
+@dataclass(frozen=True)
+class ScipReply:
+    """One sensor->host message, structurally checked.
+
+    Attributes
+    ----------
+    echo : str
+        The echoed command line.
+    status : str
+        Status code (2 chars; 1 char when ``scip1``).
+    body : tuple of bytes
+        The lines after the status line, each ``<content><sum>`` without LF.
+    scip1 : bool
+        The status line was in SCIP 1.1 form (no sum).
+    raw : bytes
+        The message as received, including the final ``LF LF``.
+    """
+
+    echo: str
+    status: str
+    body: tuple[bytes, ...]
+    scip1: bool = False
+    raw: bytes = b""
+
+    @property
+    def code(self) -> str:
+        """Command code of the echo (``"GD"``, ``"SCIP2.0"`` ...)."""
+        return split_command(self.echo)[0]
+
+    @property
+    def ok(self) -> bool:
+        """True for the success statuses ``00`` / ``99`` (``0`` in SCIP 1.1)."""
+        return self.status in ("00", "99") or (self.scip1 and self.status == "0")
+
+
+def _echo_ok(line: bytes) -> bool:
+    return len(line) >= 2 and all(0x20 <= c < 0x7F for c in line)
+
+
+def parse_reply(message: bytes) -> ScipReply:
+    """Split one message into echo, status and body lines, verifying it.
+
+    The status line is always checked strictly; so are the body lines of distance and
+    time replies (GD/GS/MD/MS/TM). Text lines of VV/PP/II are left for :func:`parse_info`.
+
+    Parameters
+    ----------
+    message : bytes
+        One message, with or without its terminating ``LF LF``.
+
+    Raises
+    ------
+    ProtocolError
+        Anything malformed.
+    """
+    msg = bytes(message)
+    text = msg[:-2] if msg.endswith(b"\n\n") else msg.rstrip(b"\n")
+    lines = text.split(LF)
+    if len(lines) < 2:
+        raise ProtocolError(
+            f"scip message = {msg[:40]!r} is invalid; allowed: echo, status line, LF LF"
+        )
+    if not _echo_ok(lines[0]):
+        raise ProtocolError(f"scip echo = {lines[0][:40]!r} is invalid; allowed: printable ASCII")
+    status, scip1 = parse_status_line(lines[1])
+    echo = lines[0].decode("ascii")
+    body = tuple(lines[2:])
+    code = split_command(echo)[0]
+    if not scip1 and code in _STRICT_CODES:
+        _verify_lines(body)
+    elif any(len(x) == 0 for x in body):
+        raise ProtocolError("scip message has an empty body line; allowed: LF LF only at end")
+    return ScipReply(echo=echo, status=status, body=body, scip1=scip1, raw=msg)
+
+
+def check_status(reply: ScipReply, allowed: Sequence[str] = ("00", "99")) -> ScipReply:
+    """Return ``reply`` if its status is in ``allowed``, else raise :class:`ScipStatusError`."""
+    if reply.status not in allowed:
+        raise ScipStatusError(reply.code, reply.status)
+    return reply
+
+
+_ECHO_RE = re.compile(rb"(SCIP2\.0|%?[A-Z]{2}[0-9A-Za-z]*)(;[A-Za-z0-9 ._+@]{0,16})?")
+_KNOWN_CODES = frozenset(
+    b"GD GS MD MS ME GE HD ND BM QT RS RT RB TM SS CR HS DB VV PP II SC %S".split()
+)
+
+
+class ScipFramer:
+    """Incremental splitter of a sensor's byte stream into complete, verified messages.
+
+    ``feed(data)`` returns every message completed by ``data`` (each ending ``LF LF``).
+    A candidate is returned only if its echo looks like a command line and it passes
+    :func:`parse_reply` (strict checksums on status, timestamp and data lines). Otherwise
+    the framer looks for a valid message starting later in the candidate (garbage before an
+    echo, or a lost LF that glued two messages together) and else discards it, counting it
+    in :attr:`rejected` and its bytes in :attr:`discarded_bytes`.
+
+    Parameters
+    ----------
+    max_buffer : int
+        Bytes kept while waiting for a terminator; beyond that the oldest are dropped.
+    """
+
+    def __init__(self, max_buffer: int = 1 << 20):
+        self._buf = bytearray()
+        self.max_buffer = int(max_buffer)
+        self.rejected = 0
+        self.discarded_bytes = 0
+        self.messages = 0
+
+    def reset(self) -> None:
+        """Forget any partial message."""
+        self.discarded_bytes += len(self._buf)
+        self._buf.clear()
+
+    @property
+    def pending(self) -> int:
+        """Bytes buffered towards an incomplete message."""
+        return len(self._buf)
+
+    def feed(self, data: bytes) -> list[bytes]:
+        """Add received bytes; return the complete valid messages, oldest first."""
+        buf = self._buf
+        buf += data
+        out: list[bytes] = []
+        start = 0
+        while True:
+            i = buf.find(b"\n\n", start)
+            if i < 0:
+                break
+            cand = bytes(buf[start:i + 2])
+            start = i + 2
+            if cand.strip(b"\n") == b"":
+                self.discarded_bytes += len(cand)
+                continue
+            msg = self._salvage(cand)
+            if msg is not None:
+                out.append(msg)
+        del buf[:start]
+        if len(buf) > self.max_buffer:
+            drop = len(buf) - self.max_buffer
+            del buf[:drop]
+            self.discarded_bytes += drop
+        self.messages += len(out)
+        return out
+
+    @staticmethod
+    def _valid(msg: bytes) -> bool:
+        j = msg.find(LF)
+        if j < 0 or not _ECHO_RE.fullmatch(msg[:j]):
+            return False
+        try:
+            parse_reply(msg)
+        except ProtocolError:
+            return False
+        return True
+
+    def _salvage(self, cand: bytes) -> bytes | None:
+        stripped = cand.lstrip(b"\n")  # leading LFs are never part of a message
+        lead = len(cand) - len(stripped)
+        if self._valid(stripped):
+            self.discarded_bytes += lead
+            return stripped
+        self.rejected += 1
+        offset = lead
+        for line in stripped[:-2].split(LF)[:-1]:
+            # a suffix of this line may be a real echo preceded by garbage
+            for j in range(len(line) - 1):
+                if line[j:j + 2] in _KNOWN_CODES and _ECHO_RE.fullmatch(line, j):
+                    sub = cand[offset + j:]
+                    if (offset + j) > lead and self._valid(sub):
+                        self.discarded_bytes += offset + j
+                        return sub
+            offset += len(line) + 1
+        self.discarded_bytes += len(cand)
+        return None
+
+
+# ---------------------------------------------------------------------------------------
+# distance replies
+# ---------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class ScanFrame:
+    """One decoded GD/GS/MD/MS scan message.
+
+    Attributes
+    ----------
+    request : DistanceRequest
+        The request as echoed (for MD/MS, ``count`` is the *remaining* count).
+    status : str
+        ``"00"`` (GD/GS) or ``"99"`` (MD/MS).
+    timestamp_ms : int
+        Device timer at step 0 of the scan [ms], 24-bit (wraps every 4.66 h).
+    ranges_mm : numpy.ndarray, shape (n_values,), int32, read-only
+        Ranges [mm]; values below DMIN are error codes (see :func:`range_error_mask`).
+    """
+
+    request: DistanceRequest
+    status: str
+    timestamp_ms: int
+    ranges_mm: np.ndarray
+
+    @property
+    def command(self) -> str:
+        """``"GD"``, ``"GS"``, ``"MD"`` or ``"MS"``."""
+        return self.request.command
+
+    @property
+    def echo(self) -> str:
+        """The echo line."""
+        return self.request.line()
+
+    @property
+    def start(self) -> int:
+        return self.request.start
+
+    @property
+    def end(self) -> int:
+        return self.request.end
+
+    @property
+    def cluster(self) -> int:
+        return self.request.cluster
+
+    @property
+    def remaining(self) -> int | None:
+        """MD/MS: scans still to come after this one (0 also for an infinite request)."""
+        return self.request.count
+
+    @property
+    def tag(self) -> str | None:
+        return self.request.tag
+
+    @property
+    def steps(self) -> np.ndarray:
+        """First step of each value, shape ``(n_values,)`` int."""
+        return self.request.steps
+
+
+def decode_scan(reply: ScipReply | bytes) -> ScanFrame:
+    """Decode a distance message into a :class:`ScanFrame`.
+
+    Raises
+    ------
+    ScipStatusError
+        The status is not ``00``/``99`` (e.g. ``10`` laser off).
+    ProtocolError
+        Bad checksum, no timestamp (e.g. an MD acknowledgement), or the number of values
+        does not match the echoed start/end/cluster.
+    """
+    if not isinstance(reply, ScipReply):
+        reply = parse_reply(reply)
+    try:
+        req = DistanceRequest.parse(reply.echo)
+    except (ScipRequestError, ParameterError) as e:
+        raise ProtocolError(f"scip scan echo = {reply.echo!r} is invalid; {e}") from None
+    check_status(reply)
+    if not reply.body:
+        raise ProtocolError(
+            f"scip {req.command} reply has no timestamp line; allowed: timestamp + data "
+            "(an MD/MS acknowledgement carries no scan)"
+        )
+    ts_line = reply.body[0]
+    if len(ts_line) != 5:
+        raise ProtocolError(f"scip timestamp line = {ts_line!r} is invalid; allowed: 4 chars + sum")
+    ts = int(decode_values(verify_line(ts_line), 4)[0])
+    ranges = decode_data_block(reply.body[1:], req.n_chars)
+    if ranges.size != req.n_values:
+        raise ProtocolError(
+            f"scip {req.command} value count = {ranges.size} is invalid; "
+            f"allowed: {req.n_values} for {req.line()}"
+        )
+    ranges.setflags(write=False)
+    return ScanFrame(request=req, status=reply.status, timestamp_ms=ts, ranges_mm=ranges)
+
+
+# ---------------------------------------------------------------------------------------
+# range error codes (SPEC p.12, Tables 3/4)
+# ---------------------------------------------------------------------------------------
+RANGE_ERROR_CODES_URG04LX: Mapping[int, str] = {
+    0: "no return: object possibly at 22 m",
+    1: "reflected intensity too low",
+    2: "reflected intensity too low",
+    3: "other error",
+    4: "other error",
+    5: "other error",
+    6: "other error",
+    7: "distance data on the preceding and succeeding steps have errors",
+    8: "intensity difference of two waves",
+    9: "the same step had an error in the last two scans",
+    **{k: "other error" for k in range(10, 18)},
+    18: "error reading due to strong reflective object",
+    19: "non-measurable step",
+}
+RANGE_ERROR_CODES_UTM30LX: Mapping[int, str] = {
+    1: "no object in the range",
+    2: "object too near",
+    3: "measurement error (interference)",
+    4: "object out of range (near end)",
+    5: "other error",
+}
+
+
+def range_error_mask(ranges_mm: np.ndarray, dmin_mm: int = 20) -> np.ndarray:
+    """Boolean mask of error codes (values below DMIN), same shape as ``ranges_mm``."""
+    return np.asarray(ranges_mm) < dmin_mm
+
+
+def range_error_meaning(code: int, model: str = "URG-04LX") -> str:
+    """Meaning of one range error code for ``model`` (``"URG-04LX"`` or ``"UTM-30LX"``)."""
+    table = RANGE_ERROR_CODES_UTM30LX if model.upper().startswith("UTM") \
+        else RANGE_ERROR_CODES_URG04LX
+    return table.get(int(code), "undocumented error code")
+
+
+def ranges_mm_to_m(ranges_mm: np.ndarray, dmin_mm: int = 20) -> np.ndarray:
+    """Ranges [mm] -> [m] float64, NaN where the value is an error code (< DMIN)."""
+    r = np.asarray(ranges_mm)
+    out = r.astype(np.float64) * 1e-3
+    out[r < dmin_mm] = np.nan
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# VV / PP / II
+# ---------------------------------------------------------------------------------------
+def _info_line_ok(line: bytes) -> bool:
+    """Does a ``KEY:VALUE;S`` line verify under any rule seen on real firmware?"""
+    if len(line) < 2:
+        return False
+    s = line[-1]
+    cands = [line[:-1]]  # urg_library fallback: n-1 bytes (with ';')
+    if line[-2:-1] == b";":
+        content = line[:-2]
+        cands.insert(0, content)  # the documented rule: ';' excluded
+        j = content.find(b"<-")
+        if j >= 0:
+            cands.append(content[:j])  # UTM-30LX II: comment excluded
+    else:
+        cands.append(line[:-2])  # urg_library fallback: n-2 bytes
+    return any((sum(c) & 0x3F) + _CHAR0 == s for c in cands)
+
+
+def parse_info(reply: ScipReply | bytes) -> dict[str, str]:
+    """Parse VV/PP/II ``KEY:VALUE;<sum>`` lines into a dict (leniently).
+
+    The status must be ``00``. A line whose sum matches none of the known rules (``;``
+    excluded as documented; urg_library's n-1/n-2 byte fallbacks; UTM-30LX's excluded
+    ``<-`` comment) is kept but raises a :class:`ScipChecksumWarning`; lines without a
+    ``:`` (e.g. a stray ``I`` some firmware sends) are skipped with a warning.
+    """
+    if not isinstance(reply, ScipReply):
+        reply = parse_reply(reply)
+    check_status(reply, ("00",))
+    out: dict[str, str] = {}
+    for line in reply.body:
+        if not _info_line_ok(line):
+            warnings.warn(
+                f"scip {reply.code} line {line!r}: checksum does not verify", ScipChecksumWarning,
+                stacklevel=2,
+            )
+        text = line[:-2] if line[-2:-1] == b";" else line[:-1]
+        s = text.decode("ascii", "replace")
+        if ":" not in s:
+            warnings.warn(f"scip {reply.code} line {line!r} has no KEY:VALUE; skipped",
+                          ScipChecksumWarning, stacklevel=2)
+            continue
+        k, v = s.split(":", 1)
+        out[k] = v
+    return out
+
+
+@dataclass(frozen=True)
+class VersionInfo:
+    """``VV`` reply: vendor, product, firmware, protocol, serial number (+ other keys)."""
+
+    vendor: str
+    product: str
+    firmware: str
+    protocol: str
+    serial: str
+    extra: Mapping[str, str] = field(default_factory=dict)
+
+    def items(self) -> list[tuple[str, str]]:
+        """``(key, value)`` pairs in reply order (for encoding)."""
+        return [("VEND", self.vendor), ("PROD", self.product), ("FIRM", self.firmware),
+                ("PROT", self.protocol), ("SERI", self.serial), *self.extra.items()]
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """``PP`` reply: model name and the step/range/speed parameters.
+
+    Attributes
+    ----------
+    model : str
+        ``MODL`` text, e.g. ``"URG-04LX(Hokuyo Automatic Co.,Ltd.)"``.
+    dmin_mm, dmax_mm : int
+        Minimum and maximum measurable range [mm].
+    ares : int
+        Steps per revolution.
+    amin, amax, afrt : int
+        First, last and front step.
+    scan_rpm : int
+        Motor speed [rev/min].
+    """
+
+    model: str
+    dmin_mm: int
+    dmax_mm: int
+    ares: int
+    amin: int
+    amax: int
+    afrt: int
+    scan_rpm: int
+    extra: Mapping[str, str] = field(default_factory=dict)
+
+    @classmethod
+    def from_lidar_model(cls, model: LidarModel, modl: str | None = None) -> SensorParams:
+        """The PP values a device of ``model`` reports."""
+        return cls(
+            model=modl or f"{model.name}(Hokuyo Automatic Co.,Ltd.)",
+            dmin_mm=round(model.range_min_m * 1000), dmax_mm=round(model.range_max_m * 1000),
+            ares=model.steps_per_rev, amin=model.step_min, amax=model.step_max,
+            afrt=model.step_front, scan_rpm=round(model.rpm),
+        )
+
+    def items(self) -> list[tuple[str, str]]:
+        """``(key, value)`` pairs in reply order (for encoding)."""
+        return [("MODL", self.model), ("DMIN", str(self.dmin_mm)), ("DMAX", str(self.dmax_mm)),
+                ("ARES", str(self.ares)), ("AMIN", str(self.amin)), ("AMAX", str(self.amax)),
+                ("AFRT", str(self.afrt)), ("SCAN", str(self.scan_rpm)), *self.extra.items()]
+
+    def to_lidar_model(self, template: LidarModel | None = None) -> LidarModel:
+        """A :class:`~nodlidar.lidar.LidarModel` with these parameters (SI units).
+
+        Housing and noise come from ``template``, or from the known model whose name
+        starts ``MODL`` (e.g. ``URG-04LX``), else from the URG-04LX.
+        """
+        if template is None:
+            name = self.model.split("(")[0].strip().upper()
+            matches = [m for k, m in LIDAR_MODELS.items() if name.startswith(k.upper())]
+            template = max(matches, key=lambda m: len(m.name)) if matches \
+                else LIDAR_MODELS["URG-04LX"]
+        return dataclasses.replace(
+            template,
+            name=self.model.split("(")[0].strip() or template.name,
+            steps_per_rev=self.ares, step_min=self.amin, step_max=self.amax,
+            step_front=self.afrt, rpm=float(self.scan_rpm),
+            range_min_m=self.dmin_mm / 1000.0, range_max_m=self.dmax_mm / 1000.0,
+        )
+
+
+@dataclass(frozen=True)
+class SensorState:
+    """``II`` reply: laser, motor speed, measurement mode, bit rate, time, status text."""
+
+    model: str
+    laser: str
+    motor_speed: str
+    measure_mode: str
+    bitrate: str
+    time: str
+    status: str
+    extra: Mapping[str, str] = field(default_factory=dict)
+
+    @property
+    def laser_on(self) -> bool:
+        """True if ``LASR`` reads ON."""
+        return self.laser.strip().upper().startswith("ON")
+
+    def items(self) -> list[tuple[str, str]]:
+        """``(key, value)`` pairs in reply order (for encoding)."""
+        return [("MODL", self.model), ("LASR", self.laser), ("SCSP", self.motor_speed),
+                ("MESM", self.measure_mode), ("SBPS", self.bitrate), ("TIME", self.time),
+                ("STAT", self.status), *self.extra.items()]
+
+
+def _take(d: dict[str, str], keys: Sequence[str], what: str) -> tuple[list[str], dict[str, str]]:
+    rest = dict(d)
+    vals = []
+    for k in keys:
+        if k not in rest:
+            raise ProtocolError(f"scip {what} reply is missing {k}; allowed: all of {list(keys)}")
+        vals.append(rest.pop(k))
+    return vals, rest
+
+
+def parse_version(reply: ScipReply | bytes) -> VersionInfo:
+    """Parse a ``VV`` reply."""
+    vals, rest = _take(parse_info(reply), ("VEND", "PROD", "FIRM", "PROT", "SERI"), "VV")
+    return VersionInfo(*vals, extra=rest)
+
+
+def parse_params(reply: ScipReply | bytes) -> SensorParams:
+    """Parse a ``PP`` reply (numbers must be decimal)."""
+    keys = ("MODL", "DMIN", "DMAX", "ARES", "AMIN", "AMAX", "AFRT", "SCAN")
+    vals, rest = _take(parse_info(reply), keys, "PP")
+    nums = []
+    for k, v in zip(keys[1:], vals[1:], strict=True):
+        try:
+            nums.append(int(v.strip()))
+        except ValueError:
+            raise ProtocolError(f"scip PP {k} = {v!r} is invalid; allowed: an integer") from None
+    return SensorParams(vals[0], *nums, extra=rest)
+
+
+def parse_state(reply: ScipReply | bytes) -> SensorState:
+    """Parse an ``II`` reply (missing keys become ``""``)."""
+    d = parse_info(reply)
+    keys = ("MODL", "LASR", "SCSP", "MESM", "SBPS", "TIME", "STAT")
+    vals = [d.pop(k, "") for k in keys]
+    return SensorState(*vals, extra=d)

@@ -1,0 +1,328 @@
+"""SCIP 2.0 codec: test vectors of ../shared/reference/scip2.md §1.10 and real captures."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nodlidar import scip
+from nodlidar.errors import DeviceError, ParameterError, ProtocolError
+from nodlidar.lidar import lidar_model
+
+CAPTURES = Path(__file__).resolve().parents[2] / "shared" / "data" / "urg04lx-captures"
+
+
+def _capture(name: str) -> bytes:
+    path = CAPTURES / f"capture-{name}-gd0044072501.bin"
+    if not path.exists():
+        pytest.skip(f"capture {path} not available")
+    return path.read_bytes()
+
+
+# --- §1.10 vectors 1-5: checksums and encodings ------------------------------------------
+def test_checksum_hokuyo():
+    assert scip.checksum("Hokuyo") == b"o"
+    assert scip.checksum(b"Hokuyo") == b"o"
+
+
+@pytest.mark.parametrize(
+    "line",
+    "00P 01Q 02R 03S 04T 05U 06V 07W 0Aa 0Bb 0Cc 0Dd 0Ee 0Ff 0Gg 0Hh 0Ii 0Ll 0Mm 10Q 50U 98a "
+    "99b".split(),
+)
+def test_status_lines(line):
+    assert scip.with_checksum(line[:2]) == line.encode()
+    assert scip.parse_status_line(line.encode()) == (line[:2], False)
+
+
+def test_status_line_bad_checksum():
+    with pytest.raises(ProtocolError, match="checksum"):
+        scip.parse_status_line(b"00Q")
+    assert scip.parse_status_line(b"E") == ("E", True)
+
+
+@pytest.mark.parametrize(
+    ("chars", "value"),
+    [("CB", 1234), ("1Dh", 5432), ("m2@0", 16_000_000), ("oo", 4095), ("ooo", 262143),
+     ("00D", 20), ("1GP", 5600), ("000", 0)],
+)
+def test_encodings(chars, value):
+    assert scip.encode_value(value, len(chars)) == chars.encode()
+    assert scip.decode_value(chars) == value
+
+
+@pytest.mark.parametrize("line", ["CB5", "1DhM", "m2@0?"])
+def test_line_checksums(line):
+    assert scip.with_checksum(line[:-1]) == line.encode()
+    assert scip.verify_line(line.encode()) == line[:-1].encode()
+
+
+def test_all_zero_line():
+    assert scip.with_checksum(b"0" * 64) == b"0" * 65
+    assert scip.encode_data_block(b"0" * 64) == b"0" * 65 + b"\n"
+
+
+def test_encode_out_of_range():
+    with pytest.raises(ParameterError, match="4095"):
+        scip.encode_values(np.array([4096]), 2)
+    with pytest.raises(ParameterError):
+        scip.encode_values(np.array([-1]), 3)
+    with pytest.raises(ProtocolError):
+        scip.decode_values(b"0p0", 3)
+    with pytest.raises(ProtocolError):
+        scip.decode_values(b"0000", 3)
+
+
+# --- vectors 6-9: PP / VV / II ----------------------------------------------------------
+PP_WIKI = (
+    b"PP\n00P\nMODL:URG-04LX(Hokuyo Automatic Co.,Ltd.);N\nDMIN:20;4\nDMAX:5600;_\n"
+    b"ARES:1024;\\\nAMIN:44;7\nAMAX:725;o\nAFRT:384;6\nSCAN:600;e\n\n"
+)
+VV_WIKI = (
+    b"VV\n00P\nVEND:Hokuyo Automatic Co.,Ltd.;[\nPROD:SOKUIKI Sensor URG-04LX;[\n"
+    b"FIRM:3.1.00(18/Jan./2007);`\nPROT:SCIP 2.0;N\nSERI:H0614967;V\n\n"
+)
+II_WIKI = (
+    b"II\n00P\nMODL:URG-04LX(Hokuyo Automatic Co.,Ltd.);N\nLASR:OFF;7\n"
+    b"SCSP:Initial(600[rpm])<-Default setting by user;A\nMESM:IDLE;:\n"
+    b"SBPS:19200[bps]<-Default setting by user;A\nTIME:081615;N\n"
+    b"STAT:Sensor works well.;8\n\n"
+)
+
+
+def test_pp_example():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        pp = scip.parse_params(PP_WIKI)
+    assert (pp.dmin_mm, pp.dmax_mm, pp.ares, pp.amin, pp.amax, pp.afrt, pp.scan_rpm) == (
+        20, 5600, 1024, 44, 725, 384, 600)
+    model = pp.to_lidar_model()
+    ref = lidar_model("URG-04LX")
+    assert model == ref
+    assert scip.encode_info_reply("PP", pp.items()) == PP_WIKI
+    assert scip.SensorParams.from_lidar_model(ref) == pp
+
+
+def test_vv_example_and_real_lines():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        vv = scip.parse_version(VV_WIKI)
+    assert vv.firmware == "3.1.00(18/Jan./2007)"
+    assert vv.serial == "H0614967"
+    assert scip.encode_info_reply("VV", vv.items()) == VV_WIKI
+    for line in (b"PROD:SOKUIKI Sensor URG-04LX-UG01(Simple-URG);[",
+                 b"FIRM:3.4.03(17/Dec./2012);T", b"SERI:H1510998;V"):
+        key, value = line[:-2].decode().split(":", 1)
+        assert scip.info_line(key, value) == line
+
+
+def test_ii_example():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ii = scip.parse_state(II_WIKI)
+    assert not ii.laser_on
+    assert ii.time == "081615"
+    assert ii.status == "Sensor works well."
+    assert scip.encode_info_reply("II", ii.items()) == II_WIKI
+
+
+def test_info_lenient_checksum_warns():
+    bad = VV_WIKI.replace(b"SERI:H0614967;V", b"SERI:H0614967;W")
+    with pytest.warns(scip.ScipChecksumWarning):
+        vv = scip.parse_version(bad)
+    assert vv.serial == "H0614967"
+    # urg_library fallback: sum including ';' is accepted silently
+    content = b"SERI:H0614967;"
+    alt = VV_WIKI.replace(b"SERI:H0614967;V", content + scip.checksum(content))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert scip.parse_version(alt).serial == "H0614967"
+    # but the status line stays strict
+    with pytest.raises(ProtocolError):
+        scip.parse_version(VV_WIKI.replace(b"00P", b"00Q"))
+
+
+# --- vectors 10-16: exchanges ----------------------------------------------------------
+def test_simple_replies():
+    assert scip.encode_message("BM", "00") == b"BM\n00P\n\n"
+    assert scip.encode_message("BM", "02") == b"BM\n02R\n\n"
+    assert scip.encode_message("QT", "00") == b"QT\n00P\n\n"
+    assert scip.encode_message("XX", "0E") == b"XX\n0Ee\n\n"
+    assert scip.encode_message("SCIP2.0", "0E") == b"SCIP2.0\n0Ee\n\n"
+    assert scip.encode_message("SCIP2.0", "0", scip1=True) == b"SCIP2.0\n0\n\n"
+    r = scip.parse_reply(b"BM\n02R\n\n")
+    assert (r.code, r.status, r.ok) == ("BM", "02", False)
+    with pytest.raises(scip.ScipStatusError) as ei:
+        scip.check_status(r)
+    assert isinstance(ei.value, DeviceError)
+    assert ei.value.status == "02" and "already on" in ei.value.meaning
+
+
+def test_tm1_reply():
+    msg = scip.encode_message("TM1", "00", [scip.with_checksum(scip.encode_value(16_000_000, 4))])
+    assert msg == b"TM1\n00P\nm2@0?\n\n"
+    r = scip.parse_reply(msg)
+    assert scip.decode_value(scip.verify_line(r.body[0])) == 16_000_000
+
+
+def test_gd_example():
+    assert scip.gd_command(384, 386, 1) == b"GD0384038601\n"
+    msg = scip.encode_scan_reply("GD0384038601", "00", 16_000_000, np.array([1000, 1234, 5432]), 3)
+    assert msg == b"GD0384038601\n00P\nm2@0?\n0?X0CB1DhI\n\n"
+    f = scip.decode_scan(msg)
+    assert f.command == "GD" and f.timestamp_ms == 16_000_000
+    assert f.ranges_mm.tolist() == [1000, 1234, 5432]
+    assert f.steps.tolist() == [384, 385, 386]
+
+
+def test_gs_example():
+    assert scip.gs_command(384, 386) == b"GS0384038601\n"
+    msg = scip.encode_scan_reply("GS0384038601", "00", 16_000_000, np.array([1000, 1234, 4095]), 2)
+    assert msg == b"GS0384038601\n00P\nm2@0?\n?XCBooj\n\n"
+    assert scip.decode_scan(msg).ranges_mm.tolist() == [1000, 1234, 4095]
+
+
+def test_md_echoes():
+    assert scip.md_command(44, 725, 1, 0, 3) == b"MD0044072501003\n"
+    req = scip.DistanceRequest.parse(b"MD0044072501003\n")
+    assert [req.echo(k) for k in (2, 1, 0)] == [
+        "MD0044072501002", "MD0044072501001", "MD0044072501000"]
+    ack = scip.encode_message(req.line(), "00")
+    assert ack == b"MD0044072501003\n00P\n\n"
+    with pytest.raises(ProtocolError, match="no timestamp"):
+        scip.decode_scan(ack)
+    msg = scip.encode_scan_reply(req.echo(2), "99", 5, np.full(682, 1000), 3)
+    f = scip.decode_scan(msg)
+    assert f.status == "99" and f.remaining == 2 and f.ranges_mm.size == 682
+    assert scip.ms_command(0, 10, 2, 1, 0, tag="a.b") == b"MS0000001002100;a.b\n"
+
+
+def test_request_validation():
+    for line, status in [(b"GD004407250\n", "0C"), (b"GD00440725011\n", "0D"),
+                         (b"GDx04407250 1\n", "0D"), (b"GDx044072501\n", "01"),
+                         (b"GD0044x72501\n", "02"), (b"GD00440725x1\n", "03"),
+                         (b"GD0725004401\n", "05"), (b"MD0044072501x03\n", "06"),
+                         (b"MD00440725010x3\n", "07"), (b"GD0044072501;" + b"a" * 17, "0G"),
+                         (b"GD0044072501;a#b", "0H")]:
+        with pytest.raises(scip.ScipRequestError) as ei:
+            scip.DistanceRequest.parse(line)
+        assert ei.value.status == status, line
+    with pytest.raises(ParameterError, match="cluster"):
+        scip.gd_command(44, 725, 100)
+    with pytest.raises(ParameterError, match="tag"):
+        scip.command("BM", tag="x" * 17)
+    assert scip.split_command(b"TM1;abc\r\n") == ("TM", "1", "abc")
+    assert scip.split_command("SCIP2.0\n") == ("SCIP2.0", "", None)
+
+
+def test_cluster_count():
+    req = scip.DistanceRequest("GD", 44, 725, 3)
+    assert req.n_values == 228
+    assert req.steps[-1] == 44 + 3 * 227
+
+
+# --- real captures ---------------------------------------------------------------------
+@pytest.mark.parametrize(("name", "n_err", "ts"), [("a", 85, "ZR3h"), ("b", 358, "0081")])
+def test_real_capture(name, n_err, ts):
+    raw = _capture(name)
+    assert len(raw) == 2134
+    framer = scip.ScipFramer()
+    msgs = framer.feed(raw)
+    assert msgs == [raw] and framer.rejected == 0
+    reply = scip.parse_reply(raw)
+    assert len(reply.body) == 33  # timestamp + 32 data lines
+    for line in reply.body:  # every checksum verifies
+        scip.verify_line(line)
+    f = scip.decode_scan(reply)
+    assert f.ranges_mm.shape == (682,)
+    assert f.timestamp_ms == scip.decode_value(ts)
+    err = scip.range_error_mask(f.ranges_mm)
+    assert err.sum() == n_err
+    assert set(np.unique(f.ranges_mm[err]).tolist()) <= {0, 6, 7}
+    assert f.ranges_mm[~err].min() >= 20 and f.ranges_mm.max() <= 5600
+    m = scip.ranges_mm_to_m(f.ranges_mm)
+    assert np.isnan(m).sum() == n_err
+    # the codec reproduces the device bytes exactly
+    assert scip.encode_scan_reply(f.echo, "00", f.timestamp_ms, f.ranges_mm, 3) == raw
+    assert scip.range_error_meaning(0).startswith("no return")
+
+
+def test_capture_a_has_all_three_codes():
+    f = scip.decode_scan(_capture("a"))
+    assert set(np.unique(f.ranges_mm[f.ranges_mm < 20]).tolist()) == {0, 6, 7}
+
+
+@pytest.mark.parametrize("name", ["a", "b"])
+def test_corrupted_capture_detected(name):
+    raw = _capture(name)
+    rng = np.random.default_rng(1)
+    positions = [p for p in rng.choice(len(raw), 60, replace=False)
+                 if raw[p] != 0x0A and p >= 13]  # payload bytes (not echo, not LF)
+    for p in positions:
+        bad = bytearray(raw)
+        bad[p] = bad[p] + 1 if bad[p] < 0x6F else bad[p] - 1
+        with pytest.raises(ProtocolError):
+            scip.decode_scan(bytes(bad))
+        assert scip.ScipFramer().feed(bytes(bad)) == []
+
+
+def test_framer_split_and_garbage():
+    raw = _capture("a")
+    rng = np.random.default_rng(2)
+    stream = b"\x00\xffjunk\n" + raw + b"QT\n00P\n\n" + b"\n\n" + b"garbage" + raw
+    framer = scip.ScipFramer()
+    out = []
+    cuts = np.sort(rng.choice(len(stream), 30, replace=False))
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(stream)], strict=True):
+        out += framer.feed(stream[a:b])
+    assert out == [raw, b"QT\n00P\n\n", raw]
+    # a lost LF glues two messages: the second one is still recovered
+    glued = raw[:-1] + raw
+    assert scip.ScipFramer().feed(glued) == [raw]
+    # a dropped byte inside a message: nothing corrupt comes out
+    dropped = raw[:500] + raw[501:] + raw
+    assert scip.ScipFramer().feed(dropped) == [raw]
+
+
+@pytest.mark.parametrize("n_chars", [2, 3, 4])
+def test_round_trip_random(n_chars):
+    rng = np.random.default_rng(42 + n_chars)
+    for n in (0, 1, 21, 22, 63, 64, 65, 682, 1081):
+        v = rng.integers(0, 64 ** n_chars, n)
+        enc = scip.encode_values(v, n_chars)
+        assert len(enc) == n * n_chars
+        assert np.array_equal(scip.decode_values(enc, n_chars), v)
+        block = scip.encode_data_block(enc)
+        lines = block.split(b"\n")[:-1]
+        assert all(len(x) <= 65 for x in lines)
+        assert np.array_equal(scip.decode_data_block(lines, n_chars), v)
+
+
+def test_scan_round_trip_random():
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        start = int(rng.integers(0, 700))
+        end = int(rng.integers(start, 726))
+        cluster = int(rng.integers(0, 5))
+        cmd = str(rng.choice(["GD", "GS", "MD", "MS"]))
+        multi = cmd in ("MD", "MS")
+        req = scip.DistanceRequest(cmd, start, end, cluster, 0 if multi else None,
+                                   int(rng.integers(0, 100)) if multi else None, tag="t1")
+        v = rng.integers(0, 4096 if req.n_chars == 2 else 5601, req.n_values)
+        ts = int(rng.integers(0, 1 << 24))
+        msg = scip.encode_scan_reply(req.echo(), "99" if multi else "00", ts, v, req.n_chars)
+        f = scip.decode_scan(msg)
+        assert f.request == req and f.timestamp_ms == ts
+        assert np.array_equal(f.ranges_mm, v)
+
+
+def test_status_meanings():
+    assert scip.status_meaning("GD", "10") == "laser is off"
+    assert "undefined" in scip.status_meaning("XX", "0E")
+    assert "hardware" in scip.status_meaning("MD", "55")
+    assert "already off" in scip.status_meaning("TM", "03")
+    err = scip.ScipStatusError("GD", "10")
+    assert "10" in str(err) and "laser is off" in str(err)
