@@ -46,6 +46,11 @@ def main(argv: list[str] | None = None) -> int:
     except NodlidarError as exc:
         print(f"nodlidar {args.command}: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except BrokenPipeError:  # e.g. `nodlidar design x.toml --json | head`
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt:
         print(f"nodlidar {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -270,6 +270,11 @@ def _bisector_normal(z: np.ndarray, m: np.ndarray) -> np.ndarray:
 def _anchor_oz(theta_z: float, theta_m: float, oa: float, D: float, name: str) -> float:
     """Range OZ of the anchor point from the paper's OA (triangle ZOM, Section III)."""
     moz = abs(float(wrap_angle(theta_z - theta_m)))
+    if moz >= np.pi - 1e-6 or abs(wrap_angle(theta_z - theta_m)) < abs(theta_z - theta_m) - 1e-9:
+        raise InfeasibleDesignError(
+            f"mirror {name}: its anchor beam at {np.degrees(theta_z):.2f} deg would have to turn "
+            f"by 180 deg or more to reach its target at {np.degrees(theta_m):.2f} deg; this split "
+            f"cannot be built for this lidar's field of view (try more windows)")
     omz = np.arcsin(oa / D)
     ozm = np.pi - moz - omz
     if ozm <= 1e-6:
@@ -289,7 +294,9 @@ def _patch_from_line(name: str, z: np.ndarray, normal: np.ndarray, side: str,
     along = unit(np.cross(EZ, normal))
     t, hit, _ = reflect_rays(np.zeros((2, 3)), _u(np.array([th_lo, th_hi])), z, normal)
     if not np.all(np.isfinite(t)):
-        raise InfeasibleDesignError(f"mirror {name}: its beams run parallel to the mirror")
+        raise InfeasibleDesignError(
+            f"mirror {name}: its edge beams run parallel to or away from the mirror plane "
+            f"(the fan is too wide for one flat mirror: use more mirrors_per_side)")
     s = (hit - z) @ along
     h = spec.mirror.glass_height_m
     return MirrorPatch(name=name, origin=tuple(z), normal=tuple(normal), along=tuple(along),

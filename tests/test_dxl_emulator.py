@@ -1,0 +1,422 @@
+"""Dynamixel bus emulator, checked with the independent dynamixel-sdk and with our driver."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from nodlidar import dynamixel as dx
+from nodlidar.errors import DeviceError, ParameterError
+from nodlidar.runtime.actuators import (
+    DynamixelBus,
+    MirrorLift,
+    MirrorLiftProfile,
+    NodController,
+    NodProfile,
+    PositionSampler,
+    SampleBuffer,
+    interpolate_angle,
+    unwrap_tick_ms,
+)
+from nodlidar.sim.clock import ManualClock, SimClock
+from nodlidar.sim.dxl_emulator import DxlEmulator, ServoSpec
+
+sdk = pytest.importorskip("dynamixel_sdk")
+
+pytestmark = pytest.mark.timeout(60)
+
+RATE = 10.0  # simulated seconds per wall second
+TICK_S_PER_UNIT = dx.RAD_S_PER_VELOCITY_UNIT / dx.RAD_PER_TICK
+
+
+@pytest.fixture
+def clock():
+    return SimClock(rate=RATE)
+
+
+@pytest.fixture
+def emu(clock):
+    with DxlEmulator(clock) as e:
+        yield e
+
+
+@pytest.fixture
+def sdk_port(emu):
+    port = sdk.PortHandler(emu.serve_pty())
+    assert port.openPort()
+    assert port.setBaudRate(57600)
+    yield port, sdk.PacketHandler(2.0)
+    port.closePort()
+
+
+def ok(result):
+    """Unpack an SDK (value..., comm, error) tuple, asserting success."""
+    *value, comm, err = result if len(result) == 3 else (None, *result)
+    assert comm == sdk.COMM_SUCCESS, f"comm {comm}"
+    assert err == 0, f"error {err}"
+    return value[0] if value else None
+
+
+# -- dynamixel-sdk against the emulator over a pty --------------------------------------
+
+
+def test_sdk_ping_and_model_number(sdk_port):
+    port, ph = sdk_port
+    for i in (1, 2, 3):
+        model, comm, err = ph.ping(port, i)
+        assert (model, comm, err) == (dx.XM430_W350_MODEL_NUMBER, sdk.COMM_SUCCESS, 0)
+        assert ok(ph.read2ByteTxRx(port, i, 0)) == dx.XM430_W350_MODEL_NUMBER
+        assert ok(ph.read1ByteTxRx(port, i, 7)) == i
+    _, comm, _ = ph.ping(port, 9)
+    assert comm == sdk.COMM_RX_TIMEOUT
+    found, comm = ph.broadcastPing(port)
+    assert comm == sdk.COMM_SUCCESS and sorted(found) == [1, 2, 3]
+
+
+def test_sdk_goal_moves_at_profile_velocity(sdk_port, emu):
+    port, ph = sdk_port
+    ok(ph.write1ByteTxRx(port, 1, 64, 1))
+    assert ok(ph.read4ByteTxRx(port, 1, 132)) == 2048
+    v_units = 40  # 9.16 rpm = 0.959 rad/s ~ 625 ticks/s
+    ok(ph.write4ByteTxRx(port, 1, 112, v_units))
+    ok(ph.write4ByteTxRx(port, 1, 116, 3048))  # +1000 ticks: 1.6 s simulated
+
+    def state():
+        data = ok(ph.readTxRx(port, 1, 120, 16))
+        tick = data[0] | data[1] << 8
+        moving = data[2]
+        pos = int.from_bytes(bytes(data[12:16]), "little", signed=True)
+        vel = int.from_bytes(bytes(data[8:12]), "little", signed=True)
+        return tick, moving, vel, pos
+
+    time.sleep(0.03)
+    k1, m1, v1, p1 = state()
+    time.sleep(0.06)
+    k2, m2, v2, p2 = state()
+    assert m1 == m2 == 1 and v1 == v2 == v_units
+    assert 2048 < p1 < p2 < 3048
+    dt = ((k2 - k1) % dx.REALTIME_TICK_MODULO) * 1e-3
+    slope = (p2 - p1) / dt
+    assert slope == pytest.approx(v_units * TICK_S_PER_UNIT, rel=0.02)
+    # arrives and stops
+    time.sleep(1.6 / RATE + 0.05)
+    _, m3, v3, p3 = state()
+    assert (m3, v3, p3) == (0, 0, 3048)
+    assert emu.joint_angle(1) == pytest.approx(dx.ticks_to_rad(3048))
+
+
+def test_sdk_error_bits(sdk_port):
+    port, ph = sdk_port
+    # goal beyond the position limit (4095)
+    comm, err = ph.write4ByteTxRx(port, 1, 116, 5000)
+    assert comm == sdk.COMM_SUCCESS and err == dx.ErrorCode.DATA_LIMIT
+    # address beyond the control table
+    _, comm, err = ph.readTxRx(port, 1, 300, 4)  # (read4ByteTxRx needs data to be present)
+    assert (comm, err) == (sdk.COMM_SUCCESS, dx.ErrorCode.ACCESS)
+    # read-only item
+    comm, err = ph.write2ByteTxRx(port, 1, 0, 12)
+    assert err == dx.ErrorCode.ACCESS
+    # value out of range
+    comm, err = ph.write1ByteTxRx(port, 1, 64, 7)
+    assert err == dx.ErrorCode.DATA_RANGE
+    # EEPROM locked while torque is on
+    ok(ph.write4ByteTxRx(port, 1, 48, 3000))
+    ok(ph.write1ByteTxRx(port, 1, 64, 1))
+    comm, err = ph.write4ByteTxRx(port, 1, 48, 3500)
+    assert err == dx.ErrorCode.ACCESS
+    comm, err = ph.write4ByteTxRx(port, 1, 116, 3001)  # new, lower limit applies
+    assert err == dx.ErrorCode.DATA_LIMIT
+
+
+def test_sdk_torque_gates_motion(sdk_port, emu):
+    port, ph = sdk_port
+    ok(ph.write4ByteTxRx(port, 2, 116, 2500))  # stored, no torque: no motion
+    time.sleep(0.05)
+    assert ok(ph.read4ByteTxRx(port, 2, 132)) == 2048
+    assert ok(ph.read1ByteTxRx(port, 2, 122)) == 0
+    ok(ph.write1ByteTxRx(port, 2, 64, 1))  # torque on: holds present position
+    assert ok(ph.read4ByteTxRx(port, 2, 116)) == 2048
+    ok(ph.write4ByteTxRx(port, 2, 112, 0))  # 0 = velocity limit
+    ok(ph.write4ByteTxRx(port, 2, 116, 2100))
+    time.sleep(0.05)
+    assert ok(ph.read4ByteTxRx(port, 2, 132)) == 2100
+    assert emu.joint_angle("mirror_left") == pytest.approx(dx.ticks_to_rad(2100))
+
+
+def test_sdk_group_sync_write_and_read(sdk_port, emu):
+    port, ph = sdk_port
+    sw_t = sdk.GroupSyncWrite(port, ph, 64, 1)
+    for i in (2, 3):
+        assert sw_t.addParam(i, [1])
+    assert sw_t.txPacket() == sdk.COMM_SUCCESS
+    sw = sdk.GroupSyncWrite(port, ph, 116, 4)
+    assert sw.addParam(2, list((1500).to_bytes(4, "little")))
+    assert sw.addParam(3, list((2600).to_bytes(4, "little")))
+    assert sw.txPacket() == sdk.COMM_SUCCESS
+    time.sleep(0.3)
+    sr = sdk.GroupSyncRead(port, ph, 132, 4)
+    for i in (1, 2, 3):
+        assert sr.addParam(i)
+    assert sr.txRxPacket() == sdk.COMM_SUCCESS
+    got = {i: sr.getData(i, 132, 4) for i in (1, 2, 3)}
+    assert got == {1: 2048, 2: 1500, 3: 2600}
+    truth = emu.joint_angles()
+    assert truth[3] == pytest.approx(dx.ticks_to_rad(2600))
+
+
+# -- in-process protocol checks on a manual clock ----------------------------------------
+
+
+def _one(emu, pkt):
+    (st,) = emu.handle_packet(pkt)
+    return st
+
+
+def _write(emu, i, name, value):
+    it = dx.item(name)
+    return _one(emu, dx.write_packet(i, it.address, dx.encode_value(value, it.size, it.signed)))
+
+
+def _read(emu, i, name):
+    it = dx.item(name)
+    st = _one(emu, dx.read_packet(i, it.address, it.size))
+    assert st.error == 0
+    return dx.decode_value(st.params, it.signed)
+
+
+def test_trapezoid_profile_and_history_on_manual_clock():
+    clk = ManualClock(t0=100.0)
+    emu = DxlEmulator(clk, [ServoSpec(1, "nod", initial_angle_rad=-0.5)])
+    assert emu.joint_angle("nod") == pytest.approx(-0.5, abs=1e-12)
+    _write(emu, 1, "torque_enable", 1)
+    _write(emu, 1, "profile_velocity", 100)
+    _write(emu, 1, "profile_acceleration", 50)
+    t_cmd = clk.now()
+    st = _write(emu, 1, "goal_position", dx.rad_to_ticks(0.5))
+    assert st.error == 0 and st.params == b""
+    v = 100 * dx.RAD_S_PER_VELOCITY_UNIT
+    a = 50 * 214.577 * 2 * math.pi / 3600
+    goal = dx.ticks_to_rad(dx.rad_to_ticks(0.5))
+    start = -0.5  # the shaft is not quantised; only reported positions are
+    dist = goal - start
+    t_acc = v / a
+    assert v * t_acc < dist  # trapezoid, not triangle
+    t_total = 2 * t_acc + (dist - v * t_acc) / v
+    # acceleration phase is quadratic
+    clk.advance(t_acc / 2)
+    assert emu.joint_angle(1) == pytest.approx(start + 0.5 * a * (t_acc / 2) ** 2, abs=1e-9)
+    assert _read(emu, 1, "moving") == 1
+    clk.advance(t_total - t_acc / 2 - 1e-3)
+    assert _read(emu, 1, "moving") == 1
+    clk.advance(2e-3)
+    assert _read(emu, 1, "moving") == 0
+    assert _read(emu, 1, "present_position") == dx.rad_to_ticks(0.5)
+    assert _read(emu, 1, "realtime_tick") == int(clk.now() * 1000) % 32768
+    # history: past times evaluate the old segment, vectorised
+    ts = t_cmd + np.array([-1.0, 0.0, t_acc, t_total, t_total + 5])
+    ang = emu.joint_angle(1, ts)
+    assert ang.shape == (5,)
+    np.testing.assert_allclose(ang[[0, 1, 3, 4]], [start, start, goal, goal], atol=1e-9)
+    assert ang[2] == pytest.approx(start + 0.5 * a * t_acc**2, abs=1e-9)
+
+
+def test_reg_write_action_broadcast_and_status_level():
+    clk = ManualClock()
+    emu = DxlEmulator(clk)
+    it = dx.item("led")
+    st = _one(emu, dx.reg_write_packet(2, it.address, b"\x01"))
+    assert st.error == 0
+    assert _read(emu, 2, "registered_instruction") == 1
+    assert _read(emu, 2, "led") == 0
+    assert emu.handle_packet(dx.action_packet()) == []  # broadcast: no reply
+    assert _read(emu, 2, "led") == 1
+    # broadcast write reaches every servo, no reply
+    assert emu.handle_packet(dx.write_packet(dx.BROADCAST_ID, it.address, b"\x01")) == []
+    assert [_read(emu, i, "led") for i in (1, 2, 3)] == [1, 1, 1]
+    # status return level 1: only reads (and pings) answer
+    it_level = dx.item("status_return_level")
+    assert emu.handle_packet(dx.write_packet(3, it_level.address, b"\x01")) == []
+    assert emu.handle_packet(dx.write_packet(3, it.address, b"\x00")) == []
+    assert _read(emu, 3, "led") == 0
+    # unknown instruction, bad length
+    st = _one(emu, dx.InstructionPacket(1, 0x30))
+    assert st.error_code is dx.ErrorCode.INSTRUCTION
+    st = _one(emu, dx.InstructionPacket(1, dx.Instruction.READ, b"\x00"))
+    assert st.error_code is dx.ErrorCode.DATA_LENGTH
+
+
+def test_handle_bytes_crc_error_and_garbage():
+    emu = DxlEmulator(ManualClock())
+    parser = dx.PacketParser()
+    bad = bytearray(dx.ping_packet(1).encode())
+    bad[-2] ^= 1
+    out = emu.handle_bytes(b"\x00\x13" + bytes(bad) + dx.ping_packet(2).encode(), parser)
+    p2 = dx.PacketParser()
+    p2.feed(out)
+    replies = list(p2.packets())
+    assert [r.id for r in replies] == [1, 2]
+    assert replies[0].error_code is dx.ErrorCode.CRC
+    assert dx.decode_value(replies[1].params[:2]) == dx.XM430_W350_MODEL_NUMBER
+    assert emu.crc_errors == 1
+
+
+def test_servo_spec_validation():
+    with pytest.raises(ParameterError, match="servo.id"):
+        ServoSpec(300)
+    with pytest.raises(ParameterError, match="servo.initial_angle_rad"):
+        ServoSpec(1, min_angle_rad=-0.1, max_angle_rad=0.1, initial_angle_rad=0.5)
+    with pytest.raises(ParameterError, match="emulator.servo_ids"):
+        DxlEmulator(ManualClock(), [ServoSpec(1), ServoSpec(1)])
+    with pytest.raises(ParameterError, match="servo"):
+        DxlEmulator(ManualClock()).joint_angle(7)
+
+
+# -- our driver ------------------------------------------------------------------------
+
+
+def test_driver_over_tcp_and_pty(emu, clock):
+    for url in (emu.serve_tcp(), emu.serve_pty()):
+        with DynamixelBus(url, time_source=clock.now) as bus:
+            assert [p.id for p in bus.discover()] == [1, 2, 3]
+            assert [p.id for p in bus.discover([1, 3, 5])] == [1, 3]
+            assert bus.ping(2).model_number == dx.XM430_W350_MODEL_NUMBER
+            assert bus.present_angles([1, 2, 3]) == {1: 0.0, 2: 0.0, 3: 0.0}
+    assert url.startswith("/dev/")
+
+
+def test_driver_errors(emu, clock):
+    with DynamixelBus(emu.serve_tcp(), time_source=clock.now, timeout_s=0.02) as bus:
+        with pytest.raises(DeviceError, match="missing"):
+            bus.ping(9)
+        bus.write(1, "max_position_limit", dx.rad_to_ticks(0.5))
+        bus.set_torque(1, True)
+        with pytest.raises(DeviceError, match="goal_position .* data_limit"):
+            bus.set_goal_angle(1, 0.8)
+        with pytest.raises(ParameterError, match="servo.goal_angle_rad"):
+            bus.set_goal_angle(1, 4.0)
+        rate = bus.set_profile_velocity(1, 0.5)
+        assert rate == pytest.approx(0.5, abs=dx.RAD_S_PER_VELOCITY_UNIT / 2)
+    with pytest.raises(DeviceError, match="not open"):
+        bus.ping(1)
+
+
+def test_nod_ramp_follows_profile(emu, clock):
+    prof = NodProfile(lower_rad=-0.35, upper_rad=0.25, rate_rad_s=0.8)
+    with DynamixelBus(emu.serve_pty(), time_source=clock.now) as bus:
+        sampler = PositionSampler(bus, period_s=0.001)
+        nod = NodController(bus, prof)
+        with sampler, nod:
+            assert nod.wait_sweeps(4, timeout_s=10.0)
+        s = sampler.samples()
+        rate = nod.effective_rate_rad_s
+    assert sampler.errors == 0
+    assert rate == pytest.approx(prof.rate_rad_s, abs=dx.RAD_S_PER_VELOCITY_UNIT)
+    turns = list(nod.turns)
+    assert [g for _, g in turns[:5]] == [-0.35, 0.25, -0.35, 0.25, -0.35]
+    # samples agree with the emulator's ground truth (quantisation + read timing)
+    truth = emu.joint_angle(1, s.host_time_s)
+    assert np.max(np.abs(truth - s.angle_rad)) < 4 * dx.RAD_PER_TICK
+    # ... and with the commanded ramp: from each turn, a line at the nod rate
+    checked = 0
+    for (t0, g0), (t1, g1) in zip(turns[1:], turns[2:], strict=False):
+        sel = (s.host_time_s > t0) & (s.host_time_s < t1)
+        direction = math.copysign(1.0, g0 - g1)
+        expect = np.clip(
+            g1 + direction * rate * (s.host_time_s[sel] - t0), prof.lower_rad, prof.upper_rad
+        )
+        assert np.max(np.abs(expect - s.angle_rad[sel])) < 0.01
+        mid = sel & (s.angle_rad > prof.lower_rad + 0.1) & (s.angle_rad < prof.upper_rad - 0.1)
+        slope = np.polyfit(s.host_time_s[mid], s.angle_rad[mid], 1)[0]
+        assert slope == pytest.approx(-direction * -rate, rel=0.03)
+        checked += 1
+    assert checked >= 2
+    # each sweep takes the nominal time (plus a short detection dwell)
+    dt = np.diff([t for t, _ in turns[1:]])
+    np.testing.assert_allclose(dt, prof.amplitude_rad / rate, rtol=0.06)
+    # the servo's realtime tick runs with the shared clock
+    tick_s = unwrap_tick_ms(s.tick_ms)
+    np.testing.assert_allclose(tick_s, s.host_time_s - s.host_time_s[0], atol=0.01)
+    # a beam time between samples gets the interpolated ground-truth angle
+    q = np.linspace(s.host_time_s[0], s.host_time_s[-1], 500)
+    est = interpolate_angle(s.host_time_s, s.angle_rad, q)
+    assert np.max(np.abs(est - emu.joint_angle(1, q))) < 0.02
+
+
+def test_mirror_lift_and_reset(emu, clock):
+    left = MirrorLiftProfile(deployed_rad=0.0, lifted_rad=1.2, rate_rad_s=3.0)
+    right = MirrorLiftProfile(deployed_rad=0.0, lifted_rad=-1.2, rate_rad_s=3.0)
+    with DynamixelBus(emu.serve_tcp(), time_source=clock.now) as bus:
+        ml = MirrorLift(bus, left, right)
+        assert ml.state() == {"left": "deployed", "right": "deployed"}
+        ml.lift()
+        assert ml.state() == {"left": "lifted", "right": "lifted"}
+        truth = emu.joint_angles()
+        assert truth[2] == pytest.approx(1.2, abs=dx.RAD_PER_TICK)
+        assert truth[3] == pytest.approx(-1.2, abs=dx.RAD_PER_TICK)
+        assert truth[1] == 0.0  # nod untouched
+        ml.reset("left")
+        assert ml.state() == {"left": "deployed", "right": "lifted"}
+        with pytest.raises(ParameterError, match="mirror.side"):
+            ml.lift("middle")
+
+
+# -- pure helpers -------------------------------------------------------------------
+
+
+def test_interpolate_angle_against_analytic_ramp():
+    prof = NodProfile(-0.4, 0.3, 0.7)
+    rng = np.random.default_rng(0)
+    ts = np.sort(rng.uniform(0.0, 5.0, 4000))
+    ts = np.unique(ts)
+    q = rng.uniform(ts[0], ts[-1], 20000)
+    est = interpolate_angle(ts, prof.angle_at(ts), q)
+    err = np.abs(est - prof.angle_at(q))
+    # exact on straight pieces; near a turnaround off by at most rate * (sample gap)
+    assert np.max(err) <= prof.rate_rad_s * np.max(np.diff(ts)) + 1e-12
+    vertices = np.arange(0, 6) * prof.sweep_time_s
+    far = np.min(np.abs(q[:, None] - vertices[None, :]), axis=1) > np.max(np.diff(ts))
+    assert np.max(err[far]) < 1e-12
+    # shape preserved
+    assert interpolate_angle(ts, prof.angle_at(ts), q.reshape(100, 200)).shape == (100, 200)
+
+
+def test_interpolate_angle_outside_and_validation():
+    t = np.array([0.0, 1.0, 2.0])
+    a = np.array([0.0, 1.0, 0.0])
+    q = np.array([-1.0, 0.5, 3.0])
+    np.testing.assert_array_equal(interpolate_angle(t, a, q)[[1]], [0.5])
+    assert np.isnan(interpolate_angle(t, a, q)[[0, 2]]).all()
+    np.testing.assert_allclose(interpolate_angle(t, a, q, outside="clamp"), [0, 0.5, 0])
+    np.testing.assert_allclose(interpolate_angle(t, a, q, outside="extrapolate"), [-1, 0.5, -1])
+    with pytest.raises(ParameterError, match=r"sample_times\[2\]"):
+        interpolate_angle([0, 1, 1], [0, 0, 0], [0.5])
+    with pytest.raises(ParameterError, match="sample_angles.shape"):
+        interpolate_angle([0, 1], [0], [0.5])
+    with pytest.raises(ParameterError, match="outside"):
+        interpolate_angle(t, a, q, outside="wrap")
+
+
+def test_nod_profile():
+    p = NodProfile(-0.2, 0.4, 0.3)
+    assert p.sweep_time_s == pytest.approx(2.0) and p.period_s == pytest.approx(4.0)
+    np.testing.assert_allclose(p.angle_at([0, 1, 2, 3, 4, 5]), [-0.2, 0.1, 0.4, 0.1, -0.2, 0.1])
+    with pytest.raises(ParameterError, match="nod.limits_rad"):
+        NodProfile(0.4, 0.2, 0.3)
+    with pytest.raises(ParameterError, match="nod.rate_rad_s"):
+        NodProfile(-0.2, 0.2, 0.0)
+    with pytest.raises(ParameterError, match="mirror.lifted_rad"):
+        MirrorLiftProfile(0.5, 0.5)
+
+
+def test_sample_buffer_and_tick_unwrap():
+    buf = SampleBuffer(capacity=4)
+    for i in range(6):
+        buf.append(float(i), i * 10, 0.1 * i)
+    s = buf.snapshot()
+    np.testing.assert_array_equal(s.host_time_s, [2, 3, 4, 5])
+    assert len(buf) == 4 and buf.dropped == 2
+    np.testing.assert_array_equal(buf.snapshot(since_s=3.5).host_time_s, [4, 5])
+    np.testing.assert_allclose(unwrap_tick_ms([32760, 32767, 5, 100]), [0, 0.007, 0.013, 0.108])

@@ -1,0 +1,98 @@
+"""The geometry core against closed forms: law of reflection, rotations, perturbations."""
+
+import numpy as np
+from numpy.testing import assert_allclose
+
+from nodlidar.geometry import (
+    MirrorPatch,
+    Perturbation,
+    matrix_from_axis_angle,
+    reflect,
+    rot_y,
+    rot_z,
+    unit,
+)
+
+rng = np.random.default_rng(7)
+
+
+def test_reflection_obeys_the_law_of_reflection():
+    d = unit(rng.normal(size=(1000, 3)))
+    n = unit(rng.normal(size=(1000, 3)))
+    r = reflect(d, n)
+    # |r| = 1, angle of incidence = angle of reflection, r in the plane of d and n
+    assert_allclose(np.linalg.norm(r, axis=1), 1, atol=1e-12)
+    assert_allclose(np.sum(r * n, 1), -np.sum(d * n, 1), atol=1e-12)
+    assert_allclose(np.einsum("ij,ij->i", np.cross(d, n), r), 0, atol=1e-12)
+    assert_allclose(reflect(r, n), d, atol=1e-12)  # involution
+
+
+def test_rotations_agree_with_axis_angle():
+    for a in (-1.0, 0.3, 2.0):
+        assert_allclose(rot_z(a), matrix_from_axis_angle([0, 0, 1], a), atol=1e-15)
+        assert_allclose(rot_y(a), matrix_from_axis_angle([0, 1, 0], a), atol=1e-15)
+    # REP 103: positive pitch tips +x down
+    assert rot_y(0.1)[2, 0] < 0
+    # vectorised form equals the scalar form
+    a = rng.uniform(-3, 3, 5)
+    assert_allclose(rot_y(a), np.stack([rot_y(x) for x in a]))
+
+
+def _patch(theta=0.3, d=0.06, hinge_z=-0.025):
+    n_out = np.array([np.cos(theta), np.sin(theta), 0.0])
+    normal = -n_out  # towards the lidar
+    along = np.cross([0, 0, 1.0], normal)
+    return MirrorPatch("M", tuple(d * n_out), tuple(normal), tuple(along), -0.03, 0.03, -0.015,
+                       0.015, hinge_z)
+
+
+def test_dd_moves_the_plane_along_its_normal():
+    p = _patch()
+    q = p.perturbed(Perturbation(dd=0.004))
+    assert_allclose(q.standoff, p.standoff + 0.004, atol=1e-15)
+    assert_allclose(q.normal_, p.normal_, atol=1e-15)
+
+
+def test_dalpha_turns_the_normal_about_the_vertical_through_o():
+    p = _patch(theta=0.3)
+    q = p.perturbed(Perturbation(dalpha=0.05))
+    assert_allclose(q.normal_azimuth, p.normal_azimuth + 0.05, atol=1e-14)
+    assert_allclose(q.standoff, p.standoff, atol=1e-15)
+
+
+def test_dbeta_tilts_a_normal_incidence_beam_by_two_dbeta():
+    # Beam along the outward normal hits the mirror at normal incidence; a tilt of dbeta
+    # about the (horizontal) hinge axis sends it back 2*dbeta out of the scan plane.
+    for dbeta in (-0.05, 0.01, 0.035):
+        p = _patch(theta=0.3).perturbed(Perturbation(dbeta=dbeta))
+        d = np.array([[np.cos(0.3), np.sin(0.3), 0.0]])
+        r = reflect(d, p.normal_)[0]
+        assert_allclose(np.arcsin(abs(r[2])), 2 * abs(dbeta), atol=1e-12)
+
+
+def test_dbeta_shifts_the_scan_plane_line_by_h_tan_dbeta():
+    # The paper's eq. 4 term h*tan(dbeta): the mirror's trace in the scan plane moves by
+    # hinge_z * tan(dbeta) along the normal (sign by the right-hand rule about 'along').
+    h, dbeta = -0.025, 0.02
+    p = _patch(hinge_z=h)
+    q = p.perturbed(Perturbation(dbeta=dbeta))
+    ray = np.array([[np.cos(0.3), np.sin(0.3), 0.0]])
+    t = q.intersect(np.zeros((1, 3)), ray, finite=False)[0][0]
+    assert_allclose(abs(t - p.standoff), abs(h * np.tan(dbeta)), rtol=1e-9)
+
+
+def test_finite_patch_misses_outside_its_rectangle():
+    p = _patch()
+    o = np.zeros((3, 3))
+    c = p.point(np.array([0.0, 0.029, 0.031]))  # inside, inside, outside along s
+    t, s, z = p.intersect(o, unit(c))
+    assert np.isfinite(t[:2]).all() and np.isinf(t[2])
+    assert_allclose(t[:2], np.linalg.norm(c[:2], axis=1), atol=1e-14)
+
+
+def test_hinge_rotation_composes_and_lifts_out_of_plane():
+    p = _patch()
+    q = p.rotated_about_hinge(0.4).rotated_about_hinge(-0.4)
+    assert_allclose(q.corners(), p.corners(), atol=1e-14)
+    lifted = p.rotated_about_hinge(-np.pi / 2)  # hinge below: top swings away from O
+    assert lifted.corners()[:, 2].max() < 0  # the whole glass is below the scan plane
