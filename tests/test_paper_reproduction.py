@@ -36,7 +36,9 @@ def test_chaining_equals_placing_l2_by_its_own_oa():
     spec = load_design(PAPER)
     chained = solve(spec)
     oas = [chained.mirror("L1").oa_m, chained.mirror("L2").oa_m]
-    free = solve(spec.replace(**{"placement.chain": False, "placement.standoff_m": oas}))
+    # (the R side gets the L side's OAs too and may overlap; only L is compared)
+    free = solve(spec.replace(**{"placement.chain": False, "placement.standoff_m": oas}),
+                 check=False)
     for name in ("L1", "L2"):
         assert_allclose(free.mirror(name).patch.origin_, chained.mirror(name).patch.origin_,
                         atol=1e-12)
