@@ -216,9 +216,10 @@ def test_trapezoid_profile_and_history_on_manual_clock():
     assert _read(emu, 1, "present_position") == dx.rad_to_ticks(0.5)
     assert _read(emu, 1, "realtime_tick") == int(clk.now() * 1000) % 32768
     # history: past times evaluate the old segment, vectorised
-    ts = t_cmd + np.array([-1.0, 0.0, t_acc, t_total, t_total + 5])
+    ts = t_cmd + np.array([-1.0, 0.0, t_acc, t_total, t_total + 5, t_acc + 0.1])
     ang = emu.joint_angle(1, ts)
-    assert ang.shape == (5,)
+    assert ang.shape == (6,)
+    assert ang[5] == pytest.approx(start + 0.5 * a * t_acc**2 + v * 0.1, abs=1e-9)
     np.testing.assert_allclose(ang[[0, 1, 3, 4]], [start, start, goal, goal], atol=1e-9)
     assert ang[2] == pytest.approx(start + 0.5 * a * t_acc**2, abs=1e-9)
 

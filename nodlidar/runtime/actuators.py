@@ -1,0 +1,1065 @@
+"""Servo driver for the nodding head and the mirror lifts (Dynamixel Protocol 2.0).
+
+Runs over pyserial's ``serial_for_url``, so a tty (``/dev/ttyUSB0``), the bus
+emulator's pty path or its ``socket://127.0.0.1:PORT`` URL all work.
+
+* :class:`DynamixelBus` - transactions, ping/discover, items by name, angles in
+  radians and rates in rad/s (ticks only at this edge).
+* :class:`NodProfile` + :class:`NodController` - the linear nod ramp: the head sweeps
+  back and forth between two pitch limits at a constant rate, driven with goal
+  position + profile velocity.
+* :class:`MirrorLiftProfile` + :class:`MirrorLift` - lift / reset the mirrors.
+* :class:`PositionSampler` - background present-position sampling into a bounded
+  :class:`SampleBuffer`, each sample stamped with host time and the servo's realtime
+  tick; :func:`interpolate_angle` then gives every lidar beam its own nod angle.
+
+Times come from ``time_source`` (default :func:`time.monotonic`); with the emulator
+pass ``clock.now`` so samples are in simulated seconds. Poll periods and sleeps are
+wall-clock seconds.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Literal, NamedTuple
+
+import numpy as np
+import serial
+
+from nodlidar.dynamixel import (
+    BROADCAST_ID,
+    CONTROL_TABLE,
+    MAX_ID,
+    RAD_PER_TICK,
+    RAD_S_PER_VELOCITY_UNIT,
+    REALTIME_TICK_MODULO,
+    CrcError,
+    ErrorCode,
+    Instruction,
+    InstructionPacket,
+    PacketParser,
+    StatusPacket,
+    decode_value,
+    encode_value,
+    item,
+    ping_packet,
+    rad_s_to_velocity_raw,
+    rad_to_ticks,
+    read_packet,
+    sync_read_packet,
+    sync_write_packet,
+    ticks_to_rad,
+    velocity_raw_to_rad_s,
+    write_packet,
+)
+from nodlidar.errors import DeviceError, ParameterError, ProtocolError, require
+
+__all__ = [
+    "NOD_ID",
+    "MIRROR_LEFT_ID",
+    "MIRROR_RIGHT_ID",
+    "PingInfo",
+    "ServoState",
+    "DynamixelBus",
+    "NodProfile",
+    "NodController",
+    "MirrorLiftProfile",
+    "MirrorLift",
+    "Samples",
+    "SampleBuffer",
+    "PositionSampler",
+    "interpolate_angle",
+    "unwrap_tick_ms",
+]
+
+NOD_ID = 1
+MIRROR_LEFT_ID = 2
+MIRROR_RIGHT_ID = 3
+
+_MIN_ANGLE = -math.pi
+_MAX_ANGLE = (4095 - 2048) * RAD_PER_TICK
+_MAX_RATE = 1023 * RAD_S_PER_VELOCITY_UNIT
+# READ 120..135 in one go: realtime tick, moving, moving status, pwm, current,
+# present velocity, present position.
+_STATE_ADDR, _STATE_LEN = 120, 16
+
+
+class PingInfo(NamedTuple):
+    """Answer to a PING: servo ID, model number, firmware version."""
+
+    id: int
+    model_number: int
+    firmware_version: int
+
+
+class ServoState(NamedTuple):
+    """One consistent snapshot of a servo (a single READ).
+
+    Attributes
+    ----------
+    host_time_s : float
+        Time source [s] at the middle of the transaction.
+    tick_ms : int
+        Servo realtime tick [ms], wraps at 32768.
+    moving : bool
+        Servo "moving" flag.
+    velocity_rad_s : float
+        Present velocity [rad/s].
+    angle_rad : float
+        Present position [rad] (0 at tick 2048).
+    """
+
+    host_time_s: float
+    tick_ms: int
+    moving: bool
+    velocity_rad_s: float
+    angle_rad: float
+
+
+def _error_name(err: int) -> str:
+    n = err & 0x7F
+    try:
+        name = ErrorCode(n).name.lower()
+    except ValueError:
+        name = f"error {n}"
+    return name + (" + hardware alert" if err & 0x80 else "")
+
+
+class DynamixelBus:
+    """A Protocol 2.0 bus on a serial line.
+
+    Parameters
+    ----------
+    url : str
+        Anything ``serial.serial_for_url`` opens: a tty path, a pty path, ``socket://``.
+    baudrate : int
+        Line speed [bit/s] (ignored by pty/socket transports).
+    timeout_s : float
+        Wall-clock time [s] to wait for a status packet.
+    retries : int
+        Extra attempts after a timeout or damaged reply.
+    time_source : callable
+        Returns the time [s] used to stamp states and samples, and for the controller
+        timeouts; pass the simulator clock's ``now`` when running on the emulator.
+
+    Notes
+    -----
+    Thread-safe: one lock serialises transactions, so the nod controller, the
+    sampler and the mirror lift may share one bus. Nothing is opened until
+    :meth:`open` / ``with``.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        baudrate: int = 57600,
+        timeout_s: float = 0.1,
+        retries: int = 2,
+        time_source: Callable[[], float] = time.monotonic,
+    ):
+        require(isinstance(url, str) and url != "", "bus.url", url, "a tty path or URL")
+        require(baudrate > 0, "bus.baudrate", baudrate, "> 0")
+        require(timeout_s > 0, "bus.timeout_s", timeout_s, "> 0")
+        require(retries >= 0, "bus.retries", retries, ">= 0")
+        self.url = url
+        self.baudrate = int(baudrate)
+        self.timeout_s = float(timeout_s)
+        self.retries = int(retries)
+        self.time_source = time_source
+        self._ser: serial.SerialBase | None = None
+        self._parser = PacketParser()
+        self._lock = threading.RLock()
+
+    # -- connection ---------------------------------------------------------------
+    def open(self) -> DynamixelBus:
+        """Open the line (idempotent)."""
+        with self._lock:
+            if self._ser is None:
+                try:
+                    self._ser = serial.serial_for_url(
+                        self.url, baudrate=self.baudrate, timeout=0.002
+                    )
+                except (serial.SerialException, OSError, ValueError) as e:
+                    raise DeviceError(f"bus.url = {self.url!r} cannot be opened: {e}") from e
+                self._ser.reset_input_buffer()
+        return self
+
+    def close(self) -> None:
+        """Close the line (idempotent)."""
+        with self._lock:
+            if self._ser is not None:
+                try:
+                    self._ser.close()
+                finally:
+                    self._ser = None
+
+    @property
+    def is_open(self) -> bool:
+        return self._ser is not None
+
+    def __enter__(self) -> DynamixelBus:
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- transactions -------------------------------------------------------------
+    def _receive(self, deadline: float, want: int | None) -> list[StatusPacket]:
+        """Read status packets until ``want`` arrived (None: until the deadline)."""
+        ser = self._ser
+        assert ser is not None
+        got: list[StatusPacket] = []
+        while want is None or len(got) < want:
+            for pkt in self._parser.packets(skip_bad=False):
+                if isinstance(pkt, StatusPacket):
+                    got.append(pkt)
+            if want is not None and len(got) >= want:
+                break
+            if time.monotonic() >= deadline:
+                break
+            data = ser.read(max(1, ser.in_waiting))
+            if data:
+                self._parser.feed(data)
+        return got
+
+    def transact(
+        self, packet: InstructionPacket, expect: int | None = 1
+    ) -> tuple[list[StatusPacket], float]:
+        """Send one instruction and collect its replies.
+
+        Parameters
+        ----------
+        packet : InstructionPacket
+            Instruction to send.
+        expect : int or None
+            Number of status packets to wait for (0: none, e.g. broadcast writes;
+            None: everything until the timeout, e.g. broadcast ping).
+
+        Returns
+        -------
+        replies : list of StatusPacket
+        host_time_s : float
+            Time source [s] halfway between sending and the last reply.
+
+        Raises
+        ------
+        DeviceError
+            No (complete) reply after all retries, or the line failed.
+        """
+        frame = packet.encode()
+        what = f"{Instruction(packet.instruction).name} to id {packet.id}"
+        last: Exception | None = None
+        with self._lock:
+            if self._ser is None:
+                raise DeviceError(f"bus.url = {self.url!r} is not open; call open() first")
+            for _ in range(self.retries + 1):
+                try:
+                    self._ser.reset_input_buffer()
+                    self._parser.clear()
+                    t0 = self.time_source()
+                    self._ser.write(frame)
+                    if expect == 0:
+                        return [], t0
+                    got = self._receive(time.monotonic() + self.timeout_s, expect)
+                    t1 = self.time_source()
+                except CrcError as e:
+                    last = e
+                    continue
+                except ProtocolError as e:  # pragma: no cover - defensive
+                    last = e
+                    continue
+                except (serial.SerialException, OSError) as e:
+                    raise DeviceError(f"bus.url = {self.url!r} failed during {what}: {e}") from e
+                if expect is None or len(got) >= expect:
+                    return got, 0.5 * (t0 + t1)
+                last = None
+            reason = f" ({last})" if last else ""
+            raise DeviceError(
+                f"servo reply to {what} missing after {self.retries + 1} attempt(s) of "
+                f"{self.timeout_s} s{reason}; allowed: a status packet within bus.timeout_s"
+            )
+
+    def _check(self, st: StatusPacket, servo_id: int, what: str) -> StatusPacket:
+        if st.id != servo_id:
+            raise DeviceError(f"servo {servo_id}: reply to {what} came from id {st.id}")
+        if st.error & 0x7F:
+            raise DeviceError(f"servo {servo_id}: {what} refused with {_error_name(st.error)}")
+        return st
+
+    # -- raw access ---------------------------------------------------------------
+    def ping(self, servo_id: int) -> PingInfo:
+        """PING one servo; raises :class:`DeviceError` if it does not answer."""
+        _check_id(servo_id)
+        (st,), _ = self.transact(ping_packet(servo_id))
+        self._check(st, servo_id, "PING")
+        if len(st.params) < 3:
+            raise DeviceError(f"servo {servo_id}: PING reply has {len(st.params)} params, not 3")
+        return PingInfo(st.id, decode_value(st.params[:2]), st.params[2])
+
+    def discover(self, ids: Iterable[int] | None = None) -> list[PingInfo]:
+        """Find servos: broadcast PING (``ids=None``) or PING each of ``ids``.
+
+        Returns the servos that answered, sorted by ID.
+        """
+        if ids is None:
+            replies, _ = self.transact(ping_packet(BROADCAST_ID), expect=None)
+            found = {
+                st.id: PingInfo(st.id, decode_value(st.params[:2]), st.params[2])
+                for st in replies
+                if len(st.params) >= 3 and not st.error & 0x7F
+            }
+            return [found[k] for k in sorted(found)]
+        out = []
+        saved = self.retries
+        try:
+            self.retries = 0
+            for i in ids:
+                try:
+                    out.append(self.ping(i))
+                except DeviceError:
+                    pass
+        finally:
+            self.retries = saved
+        return sorted(out)
+
+    def read_bytes(self, servo_id: int, address: int, length: int) -> tuple[bytes, float]:
+        """READ raw bytes; return them and the transaction time [s]."""
+        _check_id(servo_id)
+        (st,), t = self.transact(read_packet(servo_id, address, length))
+        self._check(st, servo_id, f"READ {length} B @ {address}")
+        if len(st.params) != length:
+            raise DeviceError(
+                f"servo {servo_id}: READ @ {address} returned {len(st.params)} B, not {length}"
+            )
+        return st.params, t
+
+    def write_bytes(self, servo_id: int, address: int, data: bytes) -> None:
+        """WRITE raw bytes (``servo_id=254``: broadcast, no reply awaited)."""
+        if servo_id == BROADCAST_ID:
+            self.transact(write_packet(servo_id, address, data), expect=0)
+            return
+        _check_id(servo_id)
+        (st,), _ = self.transact(write_packet(servo_id, address, data))
+        self._check(st, servo_id, f"WRITE {data.hex(' ')} @ {address}")
+
+    def read(self, servo_id: int, name: str) -> int:
+        """Read a control-table item by name (raw integer value)."""
+        it = item(name)
+        data, _ = self.read_bytes(servo_id, it.address, it.size)
+        return decode_value(data, it.signed)
+
+    def write(self, servo_id: int, name: str, value: int) -> None:
+        """Write a control-table item by name (raw integer value)."""
+        it = item(name)
+        try:
+            self.write_bytes(servo_id, it.address, encode_value(value, it.size, it.signed))
+        except DeviceError as e:
+            raise DeviceError(f"servo {servo_id}: {name} = {value} refused: {e}") from e
+
+    def sync_read(self, name: str, ids: Sequence[int]) -> dict[int, int]:
+        """SYNC_READ one item from several servos; returns ``{id: raw value}``."""
+        it = item(name)
+        replies, _ = self.transact(sync_read_packet(it.address, it.size, list(ids)), len(ids))
+        out = {}
+        for st in replies:
+            self._check(st, st.id, f"SYNC_READ {name}")
+            out[st.id] = decode_value(st.params, it.signed)
+        missing = set(ids) - set(out)
+        if missing:
+            raise DeviceError(f"servos {sorted(missing)} did not answer SYNC_READ {name}")
+        return out
+
+    def sync_write(self, name: str, values: Mapping[int, int]) -> None:
+        """SYNC_WRITE one item to several servos (``{id: raw value}``, no reply)."""
+        it = item(name)
+        data = {i: encode_value(v, it.size, it.signed) for i, v in values.items()}
+        self.transact(sync_write_packet(it.address, it.size, data), expect=0)
+
+    # -- SI helpers ---------------------------------------------------------------
+    def set_torque(self, servo_id: int, on: bool) -> None:
+        """Enable (hold/move) or disable (free) a servo."""
+        self.write(servo_id, "torque_enable", 1 if on else 0)
+
+    def torque(self, servo_id: int) -> bool:
+        """True if torque is enabled."""
+        return bool(self.read(servo_id, "torque_enable"))
+
+    def set_goal_angle(self, servo_id: int, angle_rad: float) -> None:
+        """Command a goal angle [rad] (0 = tick 2048)."""
+        require(
+            _MIN_ANGLE <= angle_rad <= _MAX_ANGLE,
+            "servo.goal_angle_rad",
+            angle_rad,
+            f"[{_MIN_ANGLE:.4f}, {_MAX_ANGLE:.4f}] and within the servo's position limits",
+        )
+        self.write(servo_id, "goal_position", rad_to_ticks(angle_rad))
+
+    def goal_angle(self, servo_id: int) -> float:
+        """Commanded goal angle [rad]."""
+        return ticks_to_rad(self.read(servo_id, "goal_position"))
+
+    def present_angle(self, servo_id: int) -> float:
+        """Present angle [rad]."""
+        return ticks_to_rad(self.read(servo_id, "present_position"))
+
+    def present_angles(self, ids: Sequence[int]) -> dict[int, float]:
+        """Present angles [rad] of several servos (one SYNC_READ)."""
+        return {i: ticks_to_rad(v) for i, v in self.sync_read("present_position", ids).items()}
+
+    def set_profile_velocity(self, servo_id: int, rate_rad_s: float) -> float:
+        """Set the profile velocity [rad/s]; return the rate actually set (quantised).
+
+        0 means "as fast as the velocity limit allows".
+        """
+        require(
+            0 <= rate_rad_s <= _MAX_RATE,
+            "servo.profile_velocity_rad_s",
+            rate_rad_s,
+            f"[0, {_MAX_RATE:.3f}] rad/s",
+        )
+        raw = rad_s_to_velocity_raw(rate_rad_s)
+        if rate_rad_s > 0:
+            raw = max(raw, 1)
+        self.write(servo_id, "profile_velocity", raw)
+        return velocity_raw_to_rad_s(raw)
+
+    def present_velocity(self, servo_id: int) -> float:
+        """Present velocity [rad/s]."""
+        return velocity_raw_to_rad_s(self.read(servo_id, "present_velocity"))
+
+    def is_moving(self, servo_id: int) -> bool:
+        """The servo's moving flag."""
+        return bool(self.read(servo_id, "moving"))
+
+    def read_state(self, servo_id: int) -> ServoState:
+        """Realtime tick, moving flag, velocity and angle in one READ."""
+        data, t = self.read_bytes(servo_id, _STATE_ADDR, _STATE_LEN)
+
+        def field(name: str) -> int:
+            it = CONTROL_TABLE[name]
+            off = it.address - _STATE_ADDR
+            return decode_value(data[off : off + it.size], it.signed)
+
+        return ServoState(
+            host_time_s=t,
+            tick_ms=field("realtime_tick"),
+            moving=bool(field("moving")),
+            velocity_rad_s=velocity_raw_to_rad_s(field("present_velocity")),
+            angle_rad=ticks_to_rad(field("present_position")),
+        )
+
+
+def _check_id(servo_id: int) -> None:
+    require(
+        isinstance(servo_id, int) and 0 <= servo_id <= MAX_ID,
+        "servo.id",
+        servo_id,
+        f"0..{MAX_ID}",
+    )
+
+
+# -- nod ramp ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NodProfile:
+    """The nod: a linear ramp back and forth between two pitch limits.
+
+    Attributes
+    ----------
+    lower_rad, upper_rad : float
+        Pitch limits [rad] (servo angle, 0 = tick 2048), ``lower < upper``.
+    rate_rad_s : float
+        Nod rate [rad/s] (constant angular speed along each ramp).
+    """
+
+    lower_rad: float
+    upper_rad: float
+    rate_rad_s: float
+
+    def __post_init__(self) -> None:
+        require(
+            math.isfinite(self.lower_rad)
+            and math.isfinite(self.upper_rad)
+            and _MIN_ANGLE <= self.lower_rad < self.upper_rad <= _MAX_ANGLE,
+            "nod.limits_rad",
+            (self.lower_rad, self.upper_rad),
+            f"{_MIN_ANGLE:.4f} <= lower < upper <= {_MAX_ANGLE:.4f}",
+        )
+        require(
+            math.isfinite(self.rate_rad_s) and 0 < self.rate_rad_s <= _MAX_RATE,
+            "nod.rate_rad_s",
+            self.rate_rad_s,
+            f"(0, {_MAX_RATE:.3f}] rad/s",
+        )
+
+    @property
+    def amplitude_rad(self) -> float:
+        """Sweep ``upper - lower`` [rad]."""
+        return self.upper_rad - self.lower_rad
+
+    @property
+    def sweep_time_s(self) -> float:
+        """Duration of one ramp (lower -> upper) [s]."""
+        return self.amplitude_rad / self.rate_rad_s
+
+    @property
+    def period_s(self) -> float:
+        """Duration of a full nod (up and down) [s]."""
+        return 2.0 * self.sweep_time_s
+
+    def angle_at(self, t, t_start: float = 0.0):
+        """Ideal nod angle [rad] at time(s) ``t`` [s]: at ``lower`` at ``t_start``, rising.
+
+        Vectorised; a triangle wave with turnarounds every :attr:`sweep_time_s`.
+        """
+        tau = np.mod(np.asarray(t, dtype=float) - t_start, self.period_s)
+        up = tau <= self.sweep_time_s
+        s = np.where(up, tau, self.period_s - tau) * self.rate_rad_s
+        out = self.lower_rad + s
+        return float(out) if out.ndim == 0 else out
+
+
+class NodController:
+    """Drive the nod servo through the :class:`NodProfile` ramp in a background thread.
+
+    The servo first moves to ``lower`` (at ``approach_rate_rad_s``), then the goal
+    alternates between ``upper`` and ``lower`` with the profile velocity set to the
+    nod rate, so the servo's own velocity profile makes the linear ramp; the goal is
+    flipped when the present angle is within ``tolerance_rad`` of it.
+
+    Parameters
+    ----------
+    bus : DynamixelBus
+        Open bus (shared with the sampler is fine).
+    profile : NodProfile
+        Pitch limits and rate.
+    servo_id : int
+        Nod servo ID.
+    tolerance_rad : float
+        Arrival tolerance [rad].
+    poll_interval_s : float
+        Wall-clock polling period [s].
+    approach_rate_rad_s : float or None
+        Rate for the initial move to ``lower`` (default: the nod rate).
+    stall_timeout_s : float
+        If a ramp takes longer than its nominal time plus this [time-source s],
+        the controller stops with a :class:`DeviceError`.
+    """
+
+    def __init__(
+        self,
+        bus: DynamixelBus,
+        profile: NodProfile,
+        *,
+        servo_id: int = NOD_ID,
+        tolerance_rad: float = 2.5 * RAD_PER_TICK,
+        poll_interval_s: float = 0.002,
+        approach_rate_rad_s: float | None = None,
+        stall_timeout_s: float = 2.0,
+    ):
+        _check_id(servo_id)
+        require(tolerance_rad > 0, "nod.tolerance_rad", tolerance_rad, "> 0")
+        require(poll_interval_s >= 0, "nod.poll_interval_s", poll_interval_s, ">= 0")
+        require(stall_timeout_s > 0, "nod.stall_timeout_s", stall_timeout_s, "> 0")
+        if approach_rate_rad_s is not None:
+            require(
+                0 < approach_rate_rad_s <= _MAX_RATE,
+                "nod.approach_rate_rad_s",
+                approach_rate_rad_s,
+                f"(0, {_MAX_RATE:.3f}]",
+            )
+        self.bus = bus
+        self.profile = profile
+        self.servo_id = servo_id
+        self.tolerance_rad = float(tolerance_rad)
+        self.poll_interval_s = float(poll_interval_s)
+        self.approach_rate_rad_s = approach_rate_rad_s or profile.rate_rad_s
+        self.stall_timeout_s = float(stall_timeout_s)
+        self.effective_rate_rad_s: float | None = None
+        self.sweeps = 0
+        self.turns: deque[tuple[float, float]] = deque(maxlen=10_000)
+        """(time [s], new goal [rad]) each time the goal is flipped."""
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._cond = threading.Condition()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> NodController:
+        """Start nodding (returns immediately)."""
+        require(not self.running, "nod.state", "running", "stopped before start()")
+        self._stop.clear()
+        self.error = None
+        self._thread = threading.Thread(target=self._run, name="nod-controller", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, *, torque_off: bool = False) -> None:
+        """Stop nodding (the servo holds its angle unless ``torque_off``).
+
+        Raises
+        ------
+        DeviceError
+            If the controller thread had failed.
+        """
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        if torque_off and self.bus.is_open:
+            self.bus.set_torque(self.servo_id, False)
+        if self.error is not None:
+            err, self.error = self.error, None
+            raise DeviceError(f"nod controller failed: {err}") from err
+
+    def __enter__(self) -> NodController:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def wait_sweeps(self, n: int, timeout_s: float = 10.0) -> bool:
+        """Block until ``n`` ramps are complete (wall-clock ``timeout_s``)."""
+        with self._cond:
+            return (
+                self._cond.wait_for(
+                    lambda: self.sweeps >= n or self.error is not None or self._stop.is_set(),
+                    timeout=timeout_s,
+                )
+                and self.sweeps >= n
+            )
+
+    def _move(self, goal: float, nominal_s: float) -> bool:
+        """Go to ``goal``; True when reached, False if stopped."""
+        bus, sid = self.bus, self.servo_id
+        bus.set_goal_angle(sid, goal)
+        t_cmd = bus.time_source()
+        self.turns.append((t_cmd, goal))
+        deadline = t_cmd + nominal_s + self.stall_timeout_s
+        while not self._stop.is_set():
+            st = bus.read_state(sid)
+            if abs(st.angle_rad - goal) <= self.tolerance_rad:
+                return True
+            if st.host_time_s > deadline:
+                raise DeviceError(
+                    f"servo {sid}: nod goal {goal:.4f} rad not reached by "
+                    f"{nominal_s + self.stall_timeout_s:.2f} s (at {st.angle_rad:.4f} rad)"
+                )
+            if self.poll_interval_s:
+                self._stop.wait(self.poll_interval_s)
+        return False
+
+    def _run(self) -> None:
+        p, bus, sid = self.profile, self.bus, self.servo_id
+        try:
+            bus.set_torque(sid, True)
+            start = bus.present_angle(sid)
+            bus.set_profile_velocity(sid, self.approach_rate_rad_s)
+            if not self._move(p.lower_rad, abs(start - p.lower_rad) / self.approach_rate_rad_s):
+                return
+            self.effective_rate_rad_s = bus.set_profile_velocity(sid, p.rate_rad_s)
+            nominal = p.amplitude_rad / self.effective_rate_rad_s
+            goal = p.upper_rad
+            while not self._stop.is_set():
+                if not self._move(goal, nominal):
+                    return
+                with self._cond:
+                    self.sweeps += 1
+                    self._cond.notify_all()
+                goal = p.lower_rad if goal == p.upper_rad else p.upper_rad
+        except Exception as e:  # reported by stop()
+            self.error = e
+        finally:
+            with self._cond:
+                self._cond.notify_all()
+
+
+# -- mirror lift ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MirrorLiftProfile:
+    """Angles of one mirror-lift servo.
+
+    Attributes
+    ----------
+    deployed_rad : float
+        Servo angle [rad] with the mirror in its working (deployed) position.
+    lifted_rad : float
+        Servo angle [rad] with the mirror lifted out of the beam.
+    rate_rad_s : float
+        Lift speed [rad/s].
+    """
+
+    deployed_rad: float = 0.0
+    lifted_rad: float = math.pi / 2
+    rate_rad_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("deployed_rad", "lifted_rad"):
+            v = getattr(self, name)
+            require(
+                math.isfinite(v) and _MIN_ANGLE <= v <= _MAX_ANGLE,
+                f"mirror.{name}",
+                v,
+                f"[{_MIN_ANGLE:.4f}, {_MAX_ANGLE:.4f}]",
+            )
+        require(
+            self.deployed_rad != self.lifted_rad,
+            "mirror.lifted_rad",
+            self.lifted_rad,
+            "different from deployed_rad",
+        )
+        require(
+            math.isfinite(self.rate_rad_s) and 0 < self.rate_rad_s <= _MAX_RATE,
+            "mirror.rate_rad_s",
+            self.rate_rad_s,
+            f"(0, {_MAX_RATE:.3f}] rad/s",
+        )
+
+
+Side = Literal["left", "right", "both"]
+
+
+class MirrorLift:
+    """Lift or reset (deploy) the left/right mirrors.
+
+    Parameters
+    ----------
+    bus : DynamixelBus
+        Open bus.
+    left, right : MirrorLiftProfile
+        Angles of each side (``right`` defaults to ``left``).
+    left_id, right_id : int
+        Servo IDs.
+    tolerance_rad : float
+        Arrival tolerance [rad] when waiting.
+    """
+
+    def __init__(
+        self,
+        bus: DynamixelBus,
+        left: MirrorLiftProfile | None = None,
+        right: MirrorLiftProfile | None = None,
+        *,
+        left_id: int = MIRROR_LEFT_ID,
+        right_id: int = MIRROR_RIGHT_ID,
+        tolerance_rad: float = 3 * RAD_PER_TICK,
+    ):
+        _check_id(left_id)
+        _check_id(right_id)
+        require(left_id != right_id, "mirror.right_id", right_id, f"!= left_id ({left_id})")
+        require(tolerance_rad > 0, "mirror.tolerance_rad", tolerance_rad, "> 0")
+        self.bus = bus
+        self.profiles = {"left": left or MirrorLiftProfile()}
+        self.profiles["right"] = right or self.profiles["left"]
+        self.ids = {"left": left_id, "right": right_id}
+        self.tolerance_rad = float(tolerance_rad)
+
+    def _sides(self, side: Side) -> list[str]:
+        if side == "both":
+            return ["left", "right"]
+        if side in ("left", "right"):
+            return [side]
+        raise ParameterError("mirror.side", side, "'left', 'right' or 'both'")
+
+    def _go(self, side: Side, attr: str, wait: bool, timeout_s: float) -> None:
+        targets = {}
+        for s in self._sides(side):
+            prof, sid = self.profiles[s], self.ids[s]
+            self.bus.set_torque(sid, True)
+            self.bus.set_profile_velocity(sid, prof.rate_rad_s)
+            goal = getattr(prof, attr)
+            self.bus.set_goal_angle(sid, goal)
+            targets[s] = goal
+        if wait:
+            self.wait(targets, timeout_s)
+
+    def lift(self, side: Side = "both", *, wait: bool = True, timeout_s: float = 10.0) -> None:
+        """Move the mirror(s) to the lifted angle; optionally wait [time-source s]."""
+        self._go(side, "lifted_rad", wait, timeout_s)
+
+    def reset(self, side: Side = "both", *, wait: bool = True, timeout_s: float = 10.0) -> None:
+        """Move the mirror(s) back to the deployed angle; optionally wait."""
+        self._go(side, "deployed_rad", wait, timeout_s)
+
+    def angles(self) -> dict[str, float]:
+        """Present angle [rad] of each side."""
+        by_id = self.bus.present_angles([self.ids["left"], self.ids["right"]])
+        return {s: by_id[i] for s, i in self.ids.items()}
+
+    def wait(self, targets: Mapping[str, float], timeout_s: float = 10.0) -> None:
+        """Block until each side is within tolerance of ``targets[side]`` [rad].
+
+        Raises
+        ------
+        DeviceError
+            Not reached within ``timeout_s`` [time-source s].
+        """
+        t_end = self.bus.time_source() + timeout_s
+        while True:
+            now = self.angles()
+            if all(abs(now[s] - g) <= self.tolerance_rad for s, g in targets.items()):
+                return
+            if self.bus.time_source() > t_end:
+                raise DeviceError(
+                    f"mirror.angles = {now} did not reach {dict(targets)} within {timeout_s} s"
+                )
+            time.sleep(0.002)
+
+    def state(self) -> dict[str, str]:
+        """``"lifted"``, ``"deployed"`` or ``"between"`` for each side."""
+        out = {}
+        for s, a in self.angles().items():
+            p = self.profiles[s]
+            if abs(a - p.lifted_rad) <= self.tolerance_rad:
+                out[s] = "lifted"
+            elif abs(a - p.deployed_rad) <= self.tolerance_rad:
+                out[s] = "deployed"
+            else:
+                out[s] = "between"
+        return out
+
+
+# -- sampling ---------------------------------------------------------------------
+
+
+class Samples(NamedTuple):
+    """Arrays of position samples (oldest first).
+
+    Attributes
+    ----------
+    host_time_s : ndarray of float
+        Time source [s] at the middle of each READ.
+    tick_ms : ndarray of int64
+        Servo realtime tick [ms] (wraps at 32768; see :func:`unwrap_tick_ms`).
+    angle_rad : ndarray of float
+        Present angle [rad].
+    """
+
+    host_time_s: np.ndarray
+    tick_ms: np.ndarray
+    angle_rad: np.ndarray
+
+
+class SampleBuffer:
+    """Thread-safe ring buffer of the newest ``capacity`` samples.
+
+    Parameters
+    ----------
+    capacity : int
+        Samples kept; older ones are overwritten (``dropped`` counts them).
+    """
+
+    def __init__(self, capacity: int = 65536):
+        require(capacity >= 2, "samples.capacity", capacity, ">= 2")
+        self.capacity = int(capacity)
+        self._t = np.empty(capacity)
+        self._tick = np.empty(capacity, dtype=np.int64)
+        self._a = np.empty(capacity)
+        self._n = 0  # total appended
+        self._lock = threading.Lock()
+
+    def append(self, host_time_s: float, tick_ms: int, angle_rad: float) -> None:
+        """Add one sample."""
+        with self._lock:
+            i = self._n % self.capacity
+            self._t[i], self._tick[i], self._a[i] = host_time_s, tick_ms, angle_rad
+            self._n += 1
+
+    def __len__(self) -> int:
+        return min(self._n, self.capacity)
+
+    @property
+    def dropped(self) -> int:
+        """Samples overwritten so far."""
+        return max(0, self._n - self.capacity)
+
+    def snapshot(self, since_s: float | None = None) -> Samples:
+        """Copy of the buffered samples (only those with time >= ``since_s`` if given)."""
+        with self._lock:
+            n = min(self._n, self.capacity)
+            start = self._n - n
+            idx = np.arange(start, self._n) % self.capacity
+            out = Samples(self._t[idx].copy(), self._tick[idx].copy(), self._a[idx].copy())
+        if since_s is not None:
+            k = int(np.searchsorted(out.host_time_s, since_s, side="left"))
+            out = Samples(out.host_time_s[k:], out.tick_ms[k:], out.angle_rad[k:])
+        return out
+
+    def clear(self) -> None:
+        with self._lock:
+            self._n = 0
+
+
+class PositionSampler:
+    """Sample a servo's present position in a background thread.
+
+    Parameters
+    ----------
+    bus : DynamixelBus
+        Open bus (shared with controllers is fine).
+    servo_id : int
+        Servo to sample (default: the nod servo).
+    period_s : float
+        Wall-clock period between READs [s] (0: as fast as the bus allows).
+    capacity : int
+        Size of the ring buffer.
+
+    Notes
+    -----
+    A failed READ is counted in ``errors`` (last one in ``last_error``) and sampling
+    goes on. Samples are in :attr:`buffer`.
+    """
+
+    def __init__(
+        self,
+        bus: DynamixelBus,
+        servo_id: int = NOD_ID,
+        *,
+        period_s: float = 0.002,
+        capacity: int = 65536,
+    ):
+        _check_id(servo_id)
+        require(period_s >= 0, "sampler.period_s", period_s, ">= 0")
+        self.bus = bus
+        self.servo_id = servo_id
+        self.period_s = float(period_s)
+        self.buffer = SampleBuffer(capacity)
+        self.errors = 0
+        self.last_error: Exception | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> PositionSampler:
+        """Start sampling (returns immediately)."""
+        require(not self.running, "sampler.state", "running", "stopped before start()")
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="dxl-sampler", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop sampling and join the thread."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+
+    def __enter__(self) -> PositionSampler:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def samples(self, since_s: float | None = None) -> Samples:
+        """Snapshot of the buffer (see :meth:`SampleBuffer.snapshot`)."""
+        return self.buffer.snapshot(since_s)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                st = self.bus.read_state(self.servo_id)
+                self.buffer.append(st.host_time_s, st.tick_ms, st.angle_rad)
+            except DeviceError as e:
+                self.errors += 1
+                self.last_error = e
+            if self.period_s:
+                self._stop.wait(self.period_s)
+
+
+# -- interpolation ----------------------------------------------------------------
+
+
+def interpolate_angle(
+    sample_times,
+    sample_angles,
+    query_times,
+    *,
+    outside: Literal["nan", "clamp", "extrapolate"] = "nan",
+) -> np.ndarray:
+    """Angle at each query time by linear interpolation between samples.
+
+    Parameters
+    ----------
+    sample_times : array_like, shape (n,)
+        Sample times [s], strictly increasing.
+    sample_angles : array_like, shape (n,)
+        Angles [rad] at ``sample_times``.
+    query_times : array_like
+        Times [s] to evaluate (any shape, e.g. one per lidar beam).
+    outside : {"nan", "clamp", "extrapolate"}
+        Queries before the first / after the last sample: NaN (default, so a beam
+        newer than the newest sample is not silently given a stale angle), the
+        end sample's angle, or linear extrapolation of the end segment.
+
+    Returns
+    -------
+    ndarray of float
+        Angles [rad], shape of ``query_times``.
+
+    Raises
+    ------
+    ParameterError
+        Mismatched lengths, too few samples, unsorted times, bad ``outside``.
+    """
+    t = np.asarray(sample_times, dtype=float)
+    a = np.asarray(sample_angles, dtype=float)
+    q = np.asarray(query_times, dtype=float)
+    require(t.ndim == 1, "sample_times.ndim", t.ndim, "1")
+    require(a.shape == t.shape, "sample_angles.shape", a.shape, f"{t.shape} (as sample_times)")
+    require(
+        outside in ("nan", "clamp", "extrapolate"),
+        "outside",
+        outside,
+        "'nan', 'clamp' or 'extrapolate'",
+    )
+    n_min = 2 if outside == "extrapolate" else 1
+    require(t.size >= n_min, "sample_times.size", t.size, f">= {n_min}")
+    if t.size > 1:
+        d = np.diff(t)
+        if not np.all(d > 0):
+            k = int(np.argmin(d > 0))
+            raise ParameterError(
+                f"sample_times[{k + 1}]",
+                float(t[k + 1]),
+                f"> sample_times[{k}] = {t[k]!r} (strictly increasing)",
+            )
+    out = np.interp(q, t, a)
+    if outside == "clamp":
+        return out
+    lo, hi = q < t[0], q > t[-1]
+    if outside == "nan":
+        out = np.where(lo | hi, np.nan, out)
+    else:
+        s0 = (a[1] - a[0]) / (t[1] - t[0])
+        s1 = (a[-1] - a[-2]) / (t[-1] - t[-2])
+        out = np.where(lo, a[0] + s0 * (q - t[0]), out)
+        out = np.where(hi, a[-1] + s1 * (q - t[-1]), out)
+    return out
+
+
+def unwrap_tick_ms(tick_ms) -> np.ndarray:
+    """Unwrap the servo realtime tick (ms modulo 32768) to seconds since the first sample.
+
+    Assumes consecutive samples are less than 32.768 s apart.
+    """
+    k = np.asarray(tick_ms, dtype=np.int64)
+    if k.size == 0:
+        return np.zeros(0)
+    d = np.diff(k) % REALTIME_TICK_MODULO
+    return np.concatenate([[0], np.cumsum(d)]) * 1e-3
