@@ -642,8 +642,9 @@ class NodController:
     def _move(self, goal: float, nominal_s: float) -> bool:
         """Go to ``goal``; True when reached, False if stopped."""
         bus, sid = self.bus, self.servo_id
+        t_before = bus.time_source()
         bus.set_goal_angle(sid, goal)
-        t_cmd = bus.time_source()
+        t_cmd = 0.5 * (t_before + bus.time_source())
         self.turns.append((t_cmd, goal))
         deadline = t_cmd + nominal_s + self.stall_timeout_s
         while not self._stop.is_set():
