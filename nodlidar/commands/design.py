@@ -30,6 +30,13 @@ def _fmt_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def main_table(design) -> str:
+    """The mirror table of a solved design, as printed by ``nodlidar design``."""
+    from ..designio import mirror_table
+
+    return _fmt_table(mirror_table(design))
+
+
 def run(args) -> int:
     from pathlib import Path
 
