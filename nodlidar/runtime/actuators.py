@@ -316,16 +316,17 @@ class DynamixelBus:
             }
             return [found[k] for k in sorted(found)]
         out = []
-        saved = self.retries
-        try:
-            self.retries = 0
-            for i in ids:
-                try:
-                    out.append(self.ping(i))
-                except DeviceError:
-                    pass
-        finally:
-            self.retries = saved
+        with self._lock:  # no other thread sees the temporary retries = 0
+            saved = self.retries
+            try:
+                self.retries = 0
+                for i in ids:
+                    try:
+                        out.append(self.ping(i))
+                    except DeviceError:
+                        pass
+            finally:
+                self.retries = saved
         return sorted(out)
 
     def read_bytes(self, servo_id: int, address: int, length: int) -> tuple[bytes, float]:
