@@ -1,0 +1,394 @@
+"""SCIP 2.0 emulator: spec exchanges byte for byte over TCP and a pty, MD/MS, errors."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from nodlidar import scip
+from nodlidar.lidar import lidar_model
+from nodlidar.sim.clock import ManualClock, SimClock
+from nodlidar.sim.faults import FaultConfig, FaultInjector
+from nodlidar.sim.scip_emulator import (
+    ScipDevice,
+    ScipEmulator,
+    cluster_ranges,
+    flat_wall_source,
+    quantise_ranges,
+)
+
+URG = lidar_model("URG-04LX")
+
+
+def spec_source(k: int, t: float) -> np.ndarray:
+    """1000, 1234, 5432 mm at steps 384-386 (scip2.md §1.10 vector 12), 2 m elsewhere."""
+    r = np.full(URG.n_steps, 2.0)
+    r[384 - 44: 387 - 44] = [1.000, 1.234, 5.432]
+    r[0] = np.nan
+    return r
+
+
+def gs_source(k: int, t: float) -> np.ndarray:
+    r = spec_source(k, t).copy()
+    r[386 - 44] = 4.095
+    return r
+
+
+class TcpClient:
+    """Minimal raw-socket host for checking bytes on the wire."""
+
+    def __init__(self, url: str):
+        host, port = url.removeprefix("socket://").rsplit(":", 1)
+        self.sock = socket.create_connection((host, int(port)), timeout=5)
+        self.framer = scip.ScipFramer()
+        self.queue: list[bytes] = []
+
+    def send(self, data: bytes) -> None:
+        self.sock.sendall(data)
+
+    def read_messages(self, n: int, timeout: float = 5.0) -> list[bytes]:
+        deadline = time.monotonic() + timeout
+        while len(self.queue) < n:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"got {len(self.queue)} of {n} messages")
+            self.sock.settimeout(left)
+            data = self.sock.recv(65536)
+            if not data:
+                raise ConnectionError("closed")
+            self.queue += self.framer.feed(data)
+        out, self.queue = self.queue[:n], self.queue[n:]
+        return out
+
+    def ask(self, line: bytes, n: int = 1) -> list[bytes]:
+        self.send(line)
+        return self.read_messages(n)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@pytest.fixture
+def manual_tcp():
+    clock = ManualClock()
+    with ScipEmulator(URG, clock, spec_source, timer_offset_ms=16_000_000) as emu:
+        client = TcpClient(emu.serve_tcp())
+        yield emu, clock, client
+        client.close()
+
+
+# --- the device state machine directly -------------------------------------------------
+def test_device_simple_commands():
+    dev = ScipDevice(URG, ManualClock(), spec_source, timer_offset_ms=16_000_000)
+
+    def ask(line: bytes) -> list[bytes]:
+        return dev.handle_line(line, 0.0)
+
+    assert ask(b"BM") == [b"BM\n00P\n\n"]
+    assert ask(b"BM") == [b"BM\n02R\n\n"]
+    assert ask(b"QT") == [b"QT\n00P\n\n"]
+    assert ask(b"RS") == [b"RS\n00P\n\n"]
+    assert ask(b"XX") == [b"XX\n0Ee\n\n"]
+    assert ask(b"SCIP2.0") == [b"SCIP2.0\n0Ee\n\n"]
+    assert ask(b"BM;tag.1") == [b"BM;tag.1\n00P\n\n"]
+    assert ask(b"") == []
+
+
+def test_device_tm_mode_rules():
+    dev = ScipDevice(URG, ManualClock(), spec_source, timer_offset_ms=16_000_000)
+
+    def status(line: bytes) -> str:
+        return scip.parse_reply(dev.handle_line(line, 0.0)[0]).status
+
+    assert status(b"TM1") == "04"
+    assert status(b"TM2") == "03"
+    assert status(b"TM0") == "00"
+    assert status(b"TM0") == "02"
+    assert dev.handle_line(b"TM1", 0.0) == [b"TM1\n00P\nm2@0?\n\n"]
+    assert status(b"QT") == "0E"  # other commands refused in adjust mode
+    assert status(b"GD0044072501") == "0E"
+    assert status(b"TM3") == "01"
+    assert status(b"TM2") == "00"
+    assert status(b"QT") == "00"
+
+
+def test_device_rs_resets_timer():
+    dev = ScipDevice(URG, ManualClock(), spec_source, timer_offset_ms=5000)
+    assert dev.timer_ms(10.0) == 15000
+    dev.handle_line(b"RS", 10.0)
+    assert dev.timer_ms(10.0) == 0 and dev.timer_ms(10.5) == 500
+    assert dev.timer_ms(20_000.0) == (20_000_000 - 10_000) % (1 << 24)  # 24-bit wrap
+
+
+@pytest.mark.parametrize(
+    ("line", "status"),
+    [(b"GD004407250", "0C"), (b"GD00440725011", "0D"), (b"GDx044072501", "01"),
+     (b"GD0044x72501", "02"), (b"GD00440725x1", "03"), (b"GD0044080001", "04"),
+     (b"GD0000072501", "04"), (b"GD0725004401", "05"), (b"MD0044072501x00", "06"),
+     (b"MD00440725010x0", "07"), (b"GD0044072501;" + b"a" * 17, "0G"),
+     (b"BM;a#", "0H"), (b"GD0044072501", "10"), (b"SS123456", "02"), (b"SSabcdef", "01"),
+     (b"SS019200", "03"), (b"CR11", "02"), (b"CRxx", "01"), (b"BMX", "0D"), (b"ZZ123", "0E")],
+)
+def test_device_error_statuses(line, status):
+    dev = ScipDevice(URG, ManualClock(), spec_source)
+    reply = scip.parse_reply(dev.handle_line(line, 0.0)[0])
+    assert reply.echo.encode() == line
+    assert reply.status == status
+
+
+def test_quantise_and_cluster():
+    r = np.array([np.nan, 0.010, 0.0204, 1.2344, 5.6, 5.6006, 4.0954, 4.096])
+    assert quantise_ranges(r, 20, 5600, 3).tolist() == [0, 6, 20, 1234, 5600, 0, 4095, 4096]
+    assert quantise_ranges(r, 20, 5600, 2).tolist() == [0, 6, 20, 1234, 0, 0, 4095, 0]
+    assert cluster_ranges(np.array([0, 500, 400, 7, 6, 0, 900]), 3, 20).tolist() == [400, 7, 900]
+
+
+# --- over TCP, byte for byte -----------------------------------------------------------
+def test_tcp_spec_exchanges(manual_tcp):
+    emu, clock, c = manual_tcp
+    assert c.ask(b"BM\n") == [b"BM\n00P\n\n"]
+    assert c.ask(b"BM\n") == [b"BM\n02R\n\n"]
+    assert c.ask(b"XX\n") == [b"XX\n0Ee\n\n"]
+    assert c.ask(b"SCIP2.0\n") == [b"SCIP2.0\n0Ee\n\n"]
+    c.send(b"GD0384038601\n")
+    time.sleep(0.05)
+    clock.advance(0.1)
+    assert c.read_messages(1) == [b"GD0384038601\n00P\nm2@0?\n0?X0CB1DhI\n\n"]
+    assert c.ask(b"QT\r\n") == [b"QT\n00P\n\n"]  # CRLF accepted, echo without it
+    assert c.ask(b"RS\n") == [b"RS\n00P\n\n"]
+    assert c.ask(b"TM0\n") == [b"TM0\n00P\n\n"]
+    assert c.ask(b"TM1\n") == [b"TM1\n00P\n" + scip.with_checksum(scip.encode_value(0, 4))
+                               + b"\n\n"]
+    assert c.ask(b"TM2\n") == [b"TM2\n00P\n\n"]
+
+
+def test_tcp_gs_example():
+    clock = ManualClock()
+    with ScipEmulator(URG, clock, gs_source, timer_offset_ms=16_000_000) as emu:
+        c = TcpClient(emu.serve_tcp())
+        assert c.ask(b"BM\n") == [b"BM\n00P\n\n"]
+        c.send(b"GS0384038601\n")
+        time.sleep(0.05)
+        clock.advance(0.1)
+        assert c.read_messages(1) == [b"GS0384038601\n00P\nm2@0?\n?XCBooj\n\n"]
+        c.close()
+
+
+def test_tcp_info_replies(manual_tcp):
+    emu, clock, c = manual_tcp
+    pp = scip.parse_params(c.ask(b"PP\n")[0])
+    assert pp.to_lidar_model() == URG
+    vv = scip.parse_version(c.ask(b"VV;v1\n")[0])
+    assert vv.protocol == "SCIP 2.0"
+    ii = scip.parse_state(c.ask(b"II\n")[0])
+    assert not ii.laser_on and ii.status == "Sensor works well."
+
+
+def test_tcp_md_count_3(manual_tcp):
+    emu, clock, c = manual_tcp
+    assert c.ask(b"MD0044072501003\n") == [b"MD0044072501003\n00P\n\n"]
+    for _ in range(4):
+        clock.advance(0.1)
+        time.sleep(0.02)
+    msgs = c.read_messages(3)
+    echoes = [m.split(b"\n")[0] for m in msgs]
+    assert echoes == [b"MD0044072501002", b"MD0044072501001", b"MD0044072501000"]
+    frames = [scip.decode_scan(m) for m in msgs]
+    assert all(f.status == "99" for f in frames)
+    ts = [f.timestamp_ms for f in frames]
+    assert np.diff(ts).tolist() == [100, 100]  # one scan per 100 ms at 600 rpm
+    k = emu.scan_index(ts[0])
+    assert np.array_equal(frames[0].ranges_mm, emu.expected_ranges_mm(k, frames[0].request))
+    # the laser went off after the last scan
+    assert c.ask(b"GD0044072501\n")[0].split(b"\n")[1] == b"10Q"
+
+
+def test_tcp_md_interval_and_tag(manual_tcp):
+    emu, clock, c = manual_tcp
+    assert c.ask(b"MS0100020003202;ab\n") == [b"MS0100020003202;ab\n00P\n\n"]
+    for _ in range(8):
+        clock.advance(0.1)
+        time.sleep(0.01)
+    msgs = c.read_messages(2)
+    frames = [scip.decode_scan(m) for m in msgs]
+    assert [f.echo for f in frames] == ["MS0100020003201;ab", "MS0100020003200;ab"]
+    assert frames[1].timestamp_ms - frames[0].timestamp_ms == 300  # interval 2 -> every 3rd
+    assert frames[0].ranges_mm.size == 34
+
+
+def test_tcp_infinite_md_until_qt():
+    clock = SimClock(rate=50.0)
+    with ScipEmulator(URG, clock, flat_wall_source(URG, 1.5, sway_m=0.2)) as emu:
+        c = TcpClient(emu.serve_tcp())
+        assert c.ask(b"MD0044072501000\n") == [b"MD0044072501000\n00P\n\n"]
+        msgs = c.read_messages(10)
+        frames = [scip.decode_scan(m) for m in msgs]
+        assert {f.echo for f in frames} == {"MD0044072501000"}
+        ts = np.array([f.timestamp_ms for f in frames])
+        assert (np.diff(ts) == 100).all()
+        for f in frames:
+            k = emu.scan_index(f.timestamp_ms)
+            assert np.array_equal(f.ranges_mm, emu.expected_ranges_mm(k, f.request))
+        c.send(b"QT\n")
+        rest = []
+        while True:
+            m = c.read_messages(1)[0]
+            if m.startswith(b"QT"):
+                assert m == b"QT\n00P\n\n"
+                break
+            rest.append(m)
+        assert len(rest) < 5
+        time.sleep(0.05)
+        c.sock.settimeout(0.05)
+        with pytest.raises(socket.timeout):
+            c.sock.recv(100)  # nothing more after QT
+        c.close()
+
+
+def test_tcp_timestamps_rate_1():
+    """At rate 1 scans come every 100 ms of wall time with +100 ms timestamps."""
+    with ScipEmulator(URG, SimClock(rate=1.0)) as emu:
+        c = TcpClient(emu.serve_tcp())
+        c.ask(b"MD0044072501004\n")
+        t0 = time.monotonic()
+        frames = [scip.decode_scan(m) for m in c.read_messages(4)]
+        dt = time.monotonic() - t0
+        assert np.diff([f.timestamp_ms for f in frames]).tolist() == [100, 100, 100]
+        assert 0.3 <= dt < 0.6
+        c.close()
+
+
+def test_tcp_new_connection_replaces_old():
+    with ScipEmulator(URG, SimClock(rate=20.0)) as emu:
+        url = emu.serve_tcp()
+        c1 = TcpClient(url)
+        c1.ask(b"MD0044072501000\n")
+        c1.read_messages(2)
+        c2 = TcpClient(url)
+        assert c2.ask(b"BM\n") == [b"BM\n02R\n\n"]  # same device, laser still on
+        assert c2.ask(b"QT\n") == [b"QT\n00P\n\n"]
+        assert emu.stats.connections == 2
+        c1.close()
+        c2.close()
+
+
+def test_scip1_mode_handshake():
+    with ScipEmulator(URG, ManualClock(), scip1=True) as emu:
+        c = TcpClient(emu.serve_tcp())
+        assert c.ask(b"QT\n") == [b"QT\nE\n\n"]
+        assert c.ask(b"SCIP2.0\n") == [b"SCIP2.0\n0\n\n"]
+        assert c.ask(b"QT\n") == [b"QT\n00P\n\n"]
+        assert c.ask(b"SCIP2.0\n") == [b"SCIP2.0\n0Ee\n\n"]
+        c.close()
+
+
+# --- through the pty with pyserial -----------------------------------------------------
+def test_pty_spec_exchanges():
+    clock = ManualClock()
+    with ScipEmulator(URG, clock, spec_source, timer_offset_ms=16_000_000) as emu:
+        path = emu.serve_pty()
+        assert path.startswith("/dev/")
+        with serial.Serial(path, 115200, timeout=2) as ser:
+            ser.write(b"BM\n")
+            assert ser.read_until(b"\n\n") == b"BM\n00P\n\n"
+            ser.write(b"GD0384038601\n")
+            time.sleep(0.05)
+            clock.advance(0.1)
+            assert ser.read_until(b"\n\n") == b"GD0384038601\n00P\nm2@0?\n0?X0CB1DhI\n\n"
+            ser.write(b"XX\n")
+            assert ser.read_until(b"\n\n") == b"XX\n0Ee\n\n"
+            ser.write(b"TM0\nTM1\n")
+            assert ser.read_until(b"\n\n") == b"TM0\n00P\n\n"
+            tm1 = scip.with_checksum(scip.encode_value(16_000_100, 4))  # clock moved 0.1 s
+            assert ser.read_until(b"\n\n") == b"TM1\n00P\n" + tm1 + b"\n\n"
+            ser.write(b"TM2\nMD0044072501003\n")
+            assert ser.read_until(b"\n\n") == b"TM2\n00P\n\n"
+            assert ser.read_until(b"\n\n") == b"MD0044072501003\n00P\n\n"
+            for _ in range(4):
+                clock.advance(0.1)
+                time.sleep(0.02)
+            framer = scip.ScipFramer()
+            got: list[bytes] = []
+            deadline = time.monotonic() + 3
+            while len(got) < 3 and time.monotonic() < deadline:
+                got += framer.feed(ser.read(max(1, ser.in_waiting)))
+            assert [m.split(b"\n")[0] for m in got] == [
+                b"MD0044072501002", b"MD0044072501001", b"MD0044072501000"]
+
+
+def test_pty_stream_fast_clock(tmp_path):
+    link = tmp_path / "ttyURG"
+    with ScipEmulator(URG, SimClock(rate=20.0)) as emu:
+        assert emu.serve_pty(link=link) == str(link)
+        with serial.serial_for_url(str(link), timeout=2) as ser:
+            ser.write(b"MD0044072501000\n")
+            framer = scip.ScipFramer()
+            got: list[bytes] = []
+            deadline = time.monotonic() + 5
+            while len(got) < 21 and time.monotonic() < deadline:
+                got += framer.feed(ser.read(max(1, ser.in_waiting)))
+            assert got[0] == b"MD0044072501000\n00P\n\n"
+            ts = [scip.decode_scan(m).timestamp_ms for m in got[1:21]]
+            assert (np.diff(ts) == 100).all()
+            ser.write(b"QT\n")
+    assert not link.exists()
+
+
+# --- faults ----------------------------------------------------------------------------
+def test_fault_injector_deterministic():
+    msg = bytes(range(48, 112)) * 40
+    cfg = FaultConfig(seed=3, drop_byte_prob=0.01, corrupt_byte_prob=0.01)
+    a = [FaultInjector(cfg).apply(msg, True) for _ in range(2)]
+    assert a[0] == a[1]
+    assert a[0].dropped > 0 and a[0].corrupted > 0
+    assert len(a[0].data) == len(msg) - a[0].dropped
+    inj = FaultInjector(FaultConfig(disconnect_at=(1,), disconnect_s=2.0, stall_at=(2,),
+                                    stall_s=1.0))
+    acts = [inj.apply(msg) for _ in range(3)]
+    assert acts[0].data == msg and acts[1].disconnect_s == 2.0 and acts[2].wait_s == 1.0
+
+
+def test_faults_garble_but_framer_never_yields_corrupt():
+    cfg = FaultConfig(seed=5, drop_byte_prob=2e-4, corrupt_byte_prob=2e-4, scans_only=True)
+    with ScipEmulator(URG, SimClock(rate=40.0), faults=cfg) as emu:
+        c = TcpClient(emu.serve_tcp())
+        c.ask(b"MD0044072501000\n")
+        msgs = c.read_messages(60, timeout=10)
+        for m in msgs:
+            f = scip.decode_scan(m)  # every yielded message verifies...
+            k = emu.scan_index(f.timestamp_ms)
+            assert np.array_equal(f.ranges_mm, emu.expected_ranges_mm(k, f.request))
+        assert emu.stats.bytes_dropped + emu.stats.bytes_corrupted > 0
+        assert c.framer.rejected > 0
+        c.close()
+
+
+def test_tcp_disconnect_and_return():
+    clock = SimClock(rate=20.0)
+    cfg = FaultConfig(disconnect_at=(3,), disconnect_s=4.0)  # 0.2 s of wall time
+    with ScipEmulator(URG, clock, faults=cfg) as emu:
+        url = emu.serve_tcp()
+        c = TcpClient(url)
+        c.ask(b"MD0044072501000\n")  # message 0
+        c.read_messages(2)  # messages 1, 2; message 3 is the disconnect
+        with pytest.raises(ConnectionError):
+            c.read_messages(1)
+        c.close()
+        assert emu.stats.disconnects == 1
+        t_down = time.monotonic()
+        while True:  # refused while away, accepted when back
+            try:
+                c = TcpClient(url)
+                assert c.ask(b"BM\n") == [b"BM\n00P\n\n"]  # rebooted: laser was off
+                break
+            except (ConnectionError, OSError):
+                c.close()
+                time.sleep(0.02)
+            assert time.monotonic() - t_down < 3
+        assert time.monotonic() - t_down >= 0.15
+        assert emu.stats.up_times
+        c.close()
