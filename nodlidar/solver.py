@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-from scipy.optimize import brentq, least_squares, minimize_scalar
+from scipy.optimize import brentq, minimize_scalar
 
 from .errors import InfeasibleDesignError
 from .geometry import (
