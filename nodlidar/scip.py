@@ -1013,7 +1013,7 @@ def range_error_meaning(code: int, model: str = "URG-04LX") -> str:
 def ranges_mm_to_m(ranges_mm: np.ndarray, dmin_mm: int = 20) -> np.ndarray:
     """Ranges [mm] -> [m] float64, NaN where the value is an error code (< DMIN)."""
     r = np.asarray(ranges_mm)
-    out = r.astype(np.float64) * 1e-3
+    out = r.astype(np.float64) / 1000.0
     out[r < dmin_mm] = np.nan
     return out
 
