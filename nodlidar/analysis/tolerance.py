@@ -1,0 +1,820 @@
+"""Tolerance analysis: mounting errors as distributions, Monte Carlo, sensitivities.
+
+The ``[tolerance]`` table of a design file (all keys optional; defaults below)::
+
+    [tolerance]
+    distribution = "normal"     # "normal": values are 1-sigma; "uniform": values are half-widths
+    dalpha_rad = 0.001          # every mirror: yaw about the lidar axis [rad]
+    dbeta_rad = 0.001           # every mirror: tilt about its hinge [rad]
+    dd_m = 0.0002               # every mirror: offset along its normal [m]
+    ranges_m = [0.4, 1.0, 2.0, 6.0]   # where errors are evaluated [m]
+    percentiles = [50.0, 95.0, 99.0]
+    samples = 10000
+    seed = 0
+    chunk_size = 1000           # part of the reproducibility contract (seeds are per chunk)
+
+    [tolerance.mirrors.L1]      # per-mirror overrides of the three values above
+    dalpha_rad = 0.002
+
+    [tolerance.lidar]           # the lidar's own mounting relative to the mirror assembly
+    yaw_rad = 0.0
+    pitch_rad = 0.0
+    offset_m = 0.0              # each of x, y, z
+
+Mirror errors are applied as :class:`~nodlidar.geometry.Perturbation` (tilt about the
+hinge, offset, yaw about O - :meth:`MirrorPatch.perturbed`); the lidar mounting error is a
+rigid motion of every mirror into the actual lidar frame
+(:meth:`MirrorPatch.transformed`). The Monte Carlo evaluates that in numpy arrays over
+samples (:func:`trace_samples`; tests check it against ``MirrorPatch.perturbed`` and
+:func:`~nodlidar.verify.verify`).
+
+What is measured, per sample and mirror, on each arc of radius R (lidar frame):
+
+* **bearing error**: the bearing the runtime reports (the nominal
+  :class:`~nodlidar.beams.BeamModel` applied to the measured path length) minus the true
+  bearing of the point the beam hit on the arc;
+* **projected-range error**: the same point's horizontal range, reported minus true;
+* **elevation**: the angle of the traced reflected direction out of the scan plane
+  (``asin(dir_z)``; the paper's ``2 dbeta`` at normal incidence, ``asin(cos(theta_r)
+  sin(2 dbeta))`` in general), and the height of the hit point on the arc;
+* **edge misses**: beams that no longer fall on their own (finite) mirror patch (mirrors
+  are evaluated one at a time, so a beam caught first by a displaced neighbour is not
+  counted; :func:`~nodlidar.verify.verify` sees that).
+
+Large runs go through Dask in fixed-size chunks, each seeded from
+``np.random.SeedSequence(seed).spawn(n_chunks)[i]``, so a seed gives the same numbers on
+any number of workers, or with no Dask at all.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..errors import ParameterError, require
+from ..geometry import (
+    MirrorPatch,
+    Perturbation,
+    arc_point,
+    bearing_of,
+    reflect,
+    reflect_rays,
+    rot_y,
+    rot_z,
+    wrap_angle,
+)
+
+if TYPE_CHECKING:
+    from ..solver import Design
+    from ..spec import DesignSpec
+
+__all__ = [
+    "DISTRIBUTIONS",
+    "MirrorSigma",
+    "LidarSigma",
+    "ToleranceSpec",
+    "tolerance_spec",
+    "LidarMount",
+    "mounted_patches",
+    "SampleTrace",
+    "trace_samples",
+    "ToleranceResult",
+    "monte_carlo",
+    "SensitivityResult",
+    "sensitivities",
+    "PARAMETERS",
+    "METRICS",
+]
+
+DISTRIBUTIONS = ("normal", "uniform")
+
+#: Parameters of the sensitivity table and their SI units.
+PARAMETERS = {"dalpha": "rad", "dbeta": "rad", "dd": "m", "lidar_yaw": "rad",
+              "lidar_pitch": "rad", "lidar_x": "m", "lidar_y": "m"}
+
+
+# ---------------------------------------------------------------------------------------
+# the [tolerance] table
+
+
+def _nonneg(table: dict, key: str, where: str, default: float) -> float:
+    v = table.get(key, default)
+    require(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v >= 0,
+            f"{where}.{key}", v, "a finite number >= 0")
+    return float(v)
+
+
+def _unknown(table: Any, allowed: set[str], where: str) -> None:
+    if not isinstance(table, dict):
+        raise ParameterError(where, table, "a table")
+    extra = sorted(set(table) - allowed)
+    if extra:
+        raise ParameterError(f"{where}.{extra[0]}", table[extra[0]],
+                             f"one of the keys {', '.join(sorted(allowed))}")
+
+
+@dataclass(frozen=True)
+class MirrorSigma:
+    """Spread of one mirror's mounting error (1-sigma, or half-width if uniform).
+
+    Attributes
+    ----------
+    dalpha_rad : float
+        Yaw about the lidar axis [rad].
+    dbeta_rad : float
+        Tilt about the hinge [rad].
+    dd_m : float
+        Offset along the mirror normal [m].
+    """
+
+    dalpha_rad: float = 0.001
+    dbeta_rad: float = 0.001
+    dd_m: float = 0.0002
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.dalpha_rad, self.dbeta_rad, self.dd_m])
+
+
+@dataclass(frozen=True)
+class LidarSigma:
+    """Spread of the lidar's mounting error relative to the mirror assembly.
+
+    Attributes
+    ----------
+    yaw_rad, pitch_rad : float
+        Rotation about z and y [rad].
+    offset_m : float
+        Translation along each of x, y, z [m].
+    """
+
+    yaw_rad: float = 0.0
+    pitch_rad: float = 0.0
+    offset_m: float = 0.0
+
+    def as_array(self) -> np.ndarray:
+        """``(5,)``: yaw, pitch, x, y, z."""
+        return np.array([self.yaw_rad, self.pitch_rad, self.offset_m, self.offset_m, self.offset_m])
+
+
+@dataclass(frozen=True)
+class ToleranceSpec:
+    """The parsed ``[tolerance]`` table (see the module docstring)."""
+
+    distribution: str = "normal"
+    mirror: MirrorSigma = field(default_factory=MirrorSigma)
+    mirrors: dict[str, MirrorSigma] = field(default_factory=dict)
+    lidar: LidarSigma = field(default_factory=LidarSigma)
+    ranges_m: tuple[float, ...] = (0.4, 1.0, 2.0, 6.0)
+    percentiles: tuple[float, ...] = (50.0, 95.0, 99.0)
+    samples: int = 10000
+    seed: int = 0
+    chunk_size: int = 1000
+
+    def __post_init__(self) -> None:
+        require(self.distribution in DISTRIBUTIONS, "tolerance.distribution", self.distribution,
+                " or ".join(DISTRIBUTIONS))
+        object.__setattr__(self, "ranges_m", tuple(float(x) for x in self.ranges_m))
+        require(len(self.ranges_m) >= 1 and all(math.isfinite(x) and x > 0 for x in self.ranges_m),
+                "tolerance.ranges_m", list(self.ranges_m), "one or more ranges > 0 m")
+        object.__setattr__(self, "percentiles", tuple(float(x) for x in self.percentiles))
+        require(len(self.percentiles) >= 1 and all(0 <= x <= 100 for x in self.percentiles),
+                "tolerance.percentiles", list(self.percentiles), "values in 0..100")
+        for key in ("samples", "chunk_size"):
+            v = getattr(self, key)
+            require(isinstance(v, int) and not isinstance(v, bool) and v >= 1,
+                    f"tolerance.{key}", v, "an integer >= 1")
+        require(isinstance(self.seed, int) and not isinstance(self.seed, bool) and self.seed >= 0,
+                "tolerance.seed", self.seed, "an integer >= 0")
+
+    def sigma_for(self, name: str) -> MirrorSigma:
+        """The spread of mirror ``name`` (its override, else the all-mirror values)."""
+        return self.mirrors.get(name, self.mirror)
+
+    def sigma_array(self, names: tuple[str, ...] | list[str]) -> np.ndarray:
+        """``(m, 3)`` spreads of ``names`` (dalpha, dbeta, dd)."""
+        unknown = sorted(set(self.mirrors) - set(names))
+        if unknown:
+            raise ParameterError(f"tolerance.mirrors.{unknown[0]}", unknown[0],
+                                 f"a mirror of this design: {', '.join(names)}")
+        return np.stack([self.sigma_for(n).as_array() for n in names])
+
+    def replace(self, **changes: Any) -> ToleranceSpec:
+        return ToleranceSpec(**{**{f.name: getattr(self, f.name) for f in fields(self)},
+                                **changes})
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``[tolerance]`` table as plain data (round-trips through :func:`tolerance_spec`)."""
+        out: dict[str, Any] = {"distribution": self.distribution,
+                               "dalpha_rad": self.mirror.dalpha_rad,
+                               "dbeta_rad": self.mirror.dbeta_rad, "dd_m": self.mirror.dd_m,
+                               "ranges_m": list(self.ranges_m),
+                               "percentiles": list(self.percentiles), "samples": self.samples,
+                               "seed": self.seed, "chunk_size": self.chunk_size,
+                               "lidar": {f.name: getattr(self.lidar, f.name)
+                                         for f in fields(self.lidar)}}
+        if self.mirrors:
+            out["mirrors"] = {n: {f.name: getattr(s, f.name) for f in fields(s)}
+                              for n, s in self.mirrors.items()}
+        return out
+
+
+_MIRROR_KEYS = {"dalpha_rad", "dbeta_rad", "dd_m"}
+_TOP_KEYS = _MIRROR_KEYS | {"distribution", "ranges_m", "percentiles", "samples", "seed",
+                            "chunk_size", "mirrors", "lidar"}
+
+
+def tolerance_spec(source: DesignSpec | dict[str, Any] | None = None) -> ToleranceSpec:
+    """Parse and validate a ``[tolerance]`` table.
+
+    Parameters
+    ----------
+    source : DesignSpec or dict or None
+        A design spec (its ``sections["tolerance"]`` is used, defaults if absent), the
+        table itself, or None for all defaults.
+
+    Raises
+    ------
+    ParameterError
+        Naming the offending ``tolerance.*`` field, its value and what is allowed.
+    """
+    if source is None:
+        table: dict[str, Any] = {}
+    elif isinstance(source, dict):
+        table = source
+    else:
+        table = source.sections.get("tolerance", {})
+    _unknown(table, _TOP_KEYS, "tolerance")
+    default = MirrorSigma()
+    base = MirrorSigma(**{k: _nonneg(table, k, "tolerance", getattr(default, k))
+                          for k in _MIRROR_KEYS})
+    mirrors: dict[str, MirrorSigma] = {}
+    per = table.get("mirrors", {})
+    _unknown(per, set(per) if isinstance(per, dict) else set(), "tolerance.mirrors")
+    for name, sub in per.items():
+        where = f"tolerance.mirrors.{name}"
+        _unknown(sub, _MIRROR_KEYS, where)
+        mirrors[name] = MirrorSigma(**{k: _nonneg(sub, k, where, getattr(base, k))
+                                       for k in _MIRROR_KEYS})
+    lt = table.get("lidar", {})
+    _unknown(lt, {"yaw_rad", "pitch_rad", "offset_m"}, "tolerance.lidar")
+    lidar = LidarSigma(**{k: _nonneg(lt, k, "tolerance.lidar", 0.0)
+                          for k in ("yaw_rad", "pitch_rad", "offset_m")})
+    kw: dict[str, Any] = {}
+    for key in ("distribution", "ranges_m", "percentiles", "samples", "seed", "chunk_size"):
+        if key in table:
+            kw[key] = table[key]
+    for key in ("ranges_m", "percentiles"):
+        if key in kw:
+            v = kw[key]
+            if not isinstance(v, list | tuple) or not all(
+                    isinstance(x, int | float) and not isinstance(x, bool) for x in v):
+                raise ParameterError(f"tolerance.{key}", v, "a list of numbers")
+    return ToleranceSpec(mirror=base, mirrors=mirrors, lidar=lidar, **kw)
+
+
+# ---------------------------------------------------------------------------------------
+# the reference path: geometry objects
+
+
+@dataclass(frozen=True)
+class LidarMount:
+    """The lidar's pose error in the mirror-assembly frame: yaw, pitch [rad], offset [m].
+
+    The lidar sits at ``R = rot_z(yaw) @ rot_y(pitch)``, ``offset``; a point ``p`` of the
+    assembly is at ``R^T (p - offset)`` in the lidar frame.
+    """
+
+    yaw: float = 0.0
+    pitch: float = 0.0
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @classmethod
+    def from_array(cls, a: np.ndarray) -> LidarMount:
+        """From ``(5,)``: yaw, pitch, x, y, z."""
+        return cls(float(a[0]), float(a[1]), (float(a[2]), float(a[3]), float(a[4])))
+
+    def rotation(self) -> np.ndarray:
+        return rot_z(self.yaw) @ rot_y(self.pitch)
+
+
+def mounted_patches(design: Design, perturbations: dict[str, Perturbation] | None = None,
+                    mount: LidarMount | None = None) -> list[MirrorPatch]:
+    """The design's patches, perturbed, then seen from a mis-mounted lidar (lidar frame)."""
+    patches = design.patches(perturbations)
+    if mount is None:
+        return patches
+    R = mount.rotation()
+    return [p.transformed(R.T, -R.T @ np.asarray(mount.offset, float)) for p in patches]
+
+
+def _dirs(theta: np.ndarray) -> np.ndarray:
+    return np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], -1)
+
+
+# ---------------------------------------------------------------------------------------
+# the batched path
+
+
+@dataclass(frozen=True, eq=False)
+class _MirrorData:
+    """Everything the batch needs about one mirror (plain arrays, cheap to pickle)."""
+
+    name: str
+    theta: np.ndarray        # (b,) beam bearings
+    origin: np.ndarray       # (3,)
+    normal: np.ndarray       # (3,) towards the lidar, as in the patch
+    along: np.ndarray        # (3,)
+    up: np.ndarray           # (3,)
+    hinge_z: float
+    extent: np.ndarray       # (4,) s_min, s_max, z_min, z_max
+    t0: np.ndarray           # (b,) nominal path to the mirror (BeamModel)
+    hit0: np.ndarray         # (b, 3)
+    out0: np.ndarray         # (b, 3)
+
+
+@dataclass(frozen=True, eq=False)
+class _Problem:
+    mirrors: tuple[_MirrorData, ...]
+    sigma: np.ndarray        # (m, 3)
+    lidar_sigma: np.ndarray  # (5,)
+    distribution: str
+    ranges: np.ndarray       # (r,)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(m.name for m in self.mirrors)
+
+
+def _problem(design: Design, tol: ToleranceSpec, ranges_m=None) -> _Problem:
+    bm = design.beam_model()
+    lid = design.lidar
+    data = []
+    for m in design.mirrors:
+        p = m.patch
+        start, d, off = bm.rays(m.steps)
+        data.append(_MirrorData(
+            name=m.name, theta=lid.bearing_from_step(m.steps), origin=p.origin_,
+            normal=p.normal_, along=p.along_, up=p.up_, hinge_z=float(p.hinge_z),
+            extent=np.array([p.s_min, p.s_max, p.z_min, p.z_max]), t0=off, hit0=start, out0=d))
+    names = tuple(m.name for m in design.mirrors)
+    ranges = np.asarray(tol.ranges_m if ranges_m is None else ranges_m, dtype=float)
+    return _Problem(mirrors=tuple(data), sigma=tol.sigma_array(names),
+                    lidar_sigma=tol.lidar.as_array(), distribution=tol.distribution,
+                    ranges=np.atleast_1d(ranges))
+
+
+def _rodrigues(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rotate the fixed vector ``v (3,)`` by each of ``angle (n,)`` about unit ``axis``."""
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    return v * c + np.cross(axis, v) * s + axis * (axis @ v) * (1.0 - c)
+
+
+@dataclass(frozen=True, eq=False)
+class SampleTrace:
+    """One mirror's beams traced for ``n`` sampled builds (lidar frame).
+
+    Attributes
+    ----------
+    name : str
+    bearing : (n, b, r) float
+        True bearing where each reflected beam crosses each arc [rad].
+    points : (n, b, r, 3) float
+        Those points [m].
+    bearing_error : (n, b, r) float
+        Bearing reported by the nominal BeamModel minus ``bearing`` [rad].
+    range_error : (n, b, r) float
+        Horizontal range reported minus true (true = the arc radius) [m].
+    elevation : (n, b) float
+        Angle of the reflected direction out of the scan plane, ``asin(dir_z)`` [rad].
+    on_patch : (n, b) bool
+        Whether the beam still hits its own finite mirror patch.
+    """
+
+    name: str
+    bearing: np.ndarray
+    points: np.ndarray
+    bearing_error: np.ndarray
+    range_error: np.ndarray
+    elevation: np.ndarray
+    on_patch: np.ndarray
+
+
+def _trace_mirror(md: _MirrorData, dm: np.ndarray, dl: np.ndarray, ranges: np.ndarray,
+                  keep_points: bool = True) -> SampleTrace:
+    """Batched equivalent of ``patch.perturbed(...)`` then ``.transformed(...)`` + trace."""
+    n = len(dm)
+    dalpha, dbeta, dd = dm[:, 0], dm[:, 1], dm[:, 2]
+    # 1. tilt about the hinge axis (origin + hinge_z*up, direction along)
+    pivot = md.origin + md.hinge_z * md.up
+    o = pivot + _rodrigues(md.origin - pivot, md.along, dbeta)
+    nrm = _rodrigues(md.normal, md.along, dbeta)
+    up = _rodrigues(md.up, md.along, dbeta)
+    along = np.broadcast_to(md.along, (n, 3))
+    # 2. offset along the outward normal (away from the lidar)
+    outward = np.where((np.sum(o * nrm, -1) > 0)[:, None], nrm, -nrm)
+    o = o + dd[:, None] * outward
+    # 3. yaw about the lidar axis through O; 4. into the mis-mounted lidar's frame
+    Rt = np.swapaxes(rot_z(dl[:, 0]) @ rot_y(dl[:, 1]), -1, -2) @ rot_z(dalpha)  # (n,3,3)
+    off = np.swapaxes(rot_z(dl[:, 0]) @ rot_y(dl[:, 1]), -1, -2) @ dl[:, 2:5, None]
+    o = (Rt @ o[:, :, None] - off)[:, :, 0]
+    nrm = (Rt @ nrm[:, :, None])[:, :, 0]
+    along = (Rt @ along[:, :, None])[:, :, 0]
+    up = (Rt @ up[:, :, None])[:, :, 0]
+    # trace every beam (from O) on every sampled plane
+    d0 = _dirs(md.theta)                                  # (b, 3)
+    t = np.sum(o * nrm, -1)[:, None] / (nrm @ d0.T)       # (n, b) distance to the plane
+    hit = t[..., None] * d0[None]                         # (n, b, 3)
+    out = reflect(np.broadcast_to(d0, hit.shape), nrm[:, None, :])
+    rel = hit - o[:, None, :]
+    s = np.sum(rel * along[:, None, :], -1)
+    z = np.sum(rel * up[:, None, :], -1)
+    on = (t > 0) & (s >= md.extent[0]) & (s <= md.extent[1]) & (z >= md.extent[2]) & (z <= md.extent[3])
+    b = hit.shape[1]
+    flat_hit, flat_out = hit.reshape(-1, 3), out.reshape(-1, 3)
+    P = np.stack([arc_point(flat_hit, flat_out, r).reshape(n, b, 3) for r in ranges], 2)
+    # measured path length, projected with the nominal (runtime) model
+    r_meas = t[..., None] + np.linalg.norm(P - hit[:, :, None, :], axis=-1)       # (n, b, r)
+    Q = md.hit0[None, :, None, :] + md.out0[None, :, None, :] * (r_meas - md.t0[None, :, None])[..., None]
+    bearing = bearing_of(P)
+    berr = wrap_angle(bearing_of(Q) - bearing)
+    rerr = np.hypot(Q[..., 0], Q[..., 1]) - np.hypot(P[..., 0], P[..., 1])
+    elev = np.arcsin(np.clip(out[..., 2], -1.0, 1.0))
+    return SampleTrace(name=md.name, bearing=bearing, points=P if keep_points else P[..., 2:],
+                       bearing_error=berr, range_error=rerr, elevation=elev, on_patch=on)
+
+
+def trace_samples(design: Design, mirror_errors: np.ndarray, lidar_errors: np.ndarray | None = None,
+                  ranges_m=(2.0,)) -> list[SampleTrace]:
+    """Trace every mirror's beams for ``n`` sampled builds at once.
+
+    Parameters
+    ----------
+    design : Design
+    mirror_errors : (n, m, 3) float
+        Per sample and mirror (in ``design.mirrors`` order): dalpha [rad], dbeta [rad],
+        dd [m], applied exactly like :meth:`MirrorPatch.perturbed`.
+    lidar_errors : (n, 5) float, optional
+        Lidar yaw, pitch [rad] and x, y, z offset [m] (see :class:`LidarMount`).
+    ranges_m : (r,) float
+        Arc radii [m].
+
+    Returns
+    -------
+    list of SampleTrace, one per mirror.
+    """
+    dm = np.asarray(mirror_errors, dtype=float)
+    m = len(design.mirrors)
+    if dm.ndim != 3 or dm.shape[1:] != (m, 3):
+        raise ParameterError("mirror_errors", f"shape {dm.shape}", f"(n, {m}, 3)")
+    dl = np.zeros((len(dm), 5)) if lidar_errors is None else np.asarray(lidar_errors, dtype=float)
+    if dl.shape != (len(dm), 5):
+        raise ParameterError("lidar_errors", f"shape {dl.shape}", f"({len(dm)}, 5)")
+    prob = _problem(design, ToleranceSpec(), ranges_m)
+    return [_trace_mirror(md, dm[:, i], dl, prob.ranges) for i, md in enumerate(prob.mirrors)]
+
+
+# ---------------------------------------------------------------------------------------
+# Monte Carlo
+
+#: Per-sample metrics kept by :func:`monte_carlo` (name -> unit).
+METRICS = {"bearing_error_max": "rad", "bearing_error_mean": "rad", "range_error_max": "m",
+           "height_max": "m", "elevation_max": "rad"}
+
+
+def _draw(rng: np.random.Generator, shape: tuple[int, ...], distribution: str) -> np.ndarray:
+    if distribution == "normal":
+        return rng.standard_normal(shape)
+    return rng.uniform(-1.0, 1.0, shape)
+
+
+def _sample(prob: _Problem, n: int, seed: np.random.SeedSequence) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, m, 3)`` mirror errors and ``(n, 5)`` lidar errors for one chunk."""
+    rng = np.random.default_rng(seed)
+    dm = _draw(rng, (n, len(prob.mirrors), 3), prob.distribution) * prob.sigma[None]
+    dl = _draw(rng, (n, 5), prob.distribution) * prob.lidar_sigma[None]
+    return dm, dl
+
+
+def _run_chunk(prob: _Problem, n: int, seed: np.random.SeedSequence) -> dict[str, np.ndarray]:
+    """Evaluate one chunk: per-sample, per-mirror summaries (float32 to keep big runs small)."""
+    dm, dl = _sample(prob, n, seed)
+    m, r = len(prob.mirrors), len(prob.ranges)
+    out = {k: np.empty((n, m, r), np.float32)
+           for k in ("bearing_error_max", "bearing_error_mean", "range_error_max", "height_max")}
+    out["elevation_max"] = np.empty((n, m), np.float32)
+    out["edge_misses"] = np.empty((n, m), np.int32)
+    for i, md in enumerate(prob.mirrors):
+        tr = _trace_mirror(md, dm[:, i], dl, prob.ranges, keep_points=False)
+        out["bearing_error_max"][:, i] = np.max(np.abs(tr.bearing_error), axis=1)
+        out["bearing_error_mean"][:, i] = np.mean(tr.bearing_error, axis=1)
+        out["range_error_max"][:, i] = np.max(np.abs(tr.range_error), axis=1)
+        out["height_max"][:, i] = np.max(np.abs(tr.points[..., 0]), axis=1)
+        out["elevation_max"][:, i] = np.max(np.abs(tr.elevation), axis=1)
+        out["edge_misses"][:, i] = np.count_nonzero(~tr.on_patch, axis=1)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class ToleranceResult:
+    """Monte Carlo results: per sampled build, per mirror (and per range where it applies).
+
+    Attributes
+    ----------
+    design_name : str
+    tolerance : ToleranceSpec
+    mirror_names : tuple of str
+    ranges_m : (r,) float
+    seed, chunk_size, n_samples : int
+    bearing_error_max : (N, m, r) float32
+        Largest |bearing error| over the mirror's beams [rad].
+    bearing_error_mean : (N, m, r) float32
+        Mean signed bearing error over the mirror's beams [rad].
+    range_error_max : (N, m, r) float32
+        Largest |projected-range error| [m].
+    height_max : (N, m, r) float32
+        Largest |height| of the hit point above the scan plane [m].
+    elevation_max : (N, m) float32
+        Largest |elevation| of the reflected beams [rad].
+    edge_misses : (N, m) int32
+        Beams that fall off their own mirror patch.
+    """
+
+    design_name: str
+    tolerance: ToleranceSpec
+    mirror_names: tuple[str, ...]
+    ranges_m: np.ndarray
+    seed: int
+    chunk_size: int
+    n_samples: int
+    bearing_error_max: np.ndarray
+    bearing_error_mean: np.ndarray
+    range_error_max: np.ndarray
+    height_max: np.ndarray
+    elevation_max: np.ndarray
+    edge_misses: np.ndarray
+
+    def percentiles(self, metric: str, q=None) -> np.ndarray:
+        """Percentiles over samples: ``(len(q), m[, r])``; ``q`` defaults to the spec's."""
+        if metric not in METRICS and metric != "edge_misses":
+            raise ParameterError("metric", metric, ", ".join([*METRICS, "edge_misses"]))
+        q = self.tolerance.percentiles if q is None else q
+        return np.percentile(np.asarray(getattr(self, metric), dtype=float), q, axis=0)
+
+    def table(self) -> list[dict[str, Any]]:
+        """Rows (mirror, range) with percentiles in display units (deg, mm)."""
+        qs = self.tolerance.percentiles
+        be = np.degrees(self.percentiles("bearing_error_max"))
+        re = self.percentiles("range_error_max") * 1e3
+        he = self.percentiles("height_max") * 1e3
+        el = np.degrees(self.percentiles("elevation_max"))
+        miss = np.mean(self.edge_misses > 0, axis=0)
+        rows = []
+        for i, name in enumerate(self.mirror_names):
+            for j, r in enumerate(self.ranges_m):
+                rows.append({
+                    "mirror": name, "range_m": float(r),
+                    **{f"bearing_err_p{q:g}_deg": float(be[k, i, j]) for k, q in enumerate(qs)},
+                    **{f"range_err_p{q:g}_mm": float(re[k, i, j]) for k, q in enumerate(qs)},
+                    **{f"height_p{q:g}_mm": float(he[k, i, j]) for k, q in enumerate(qs)},
+                    **{f"elevation_p{q:g}_deg": float(el[k, i]) for k, q in enumerate(qs)},
+                    "edge_miss_fraction": float(miss[i]),
+                })
+        return rows
+
+
+def _chunks(samples: int, chunk_size: int) -> list[int]:
+    n_full, rest = divmod(samples, chunk_size)
+    return [chunk_size] * n_full + ([rest] if rest else [])
+
+
+def monte_carlo(
+    design: Design,
+    tolerance: ToleranceSpec | None = None,
+    *,
+    samples: int | None = None,
+    seed: int | None = None,
+    chunk_size: int | None = None,
+    ranges_m=None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    client: Any = None,
+    processes: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+) -> ToleranceResult:
+    """Sample mounting errors and evaluate every mirror's beams, chunk by chunk.
+
+    Parameters
+    ----------
+    design : Design
+    tolerance : ToleranceSpec, optional
+        Default: the design file's ``[tolerance]`` table (defaults if absent).
+    samples, seed, chunk_size, ranges_m : optional
+        Override the spec's values.
+    workers : int, optional
+        ``0``: run in this process (no Dask). ``n >= 1``: a
+        ``distributed.LocalCluster(n_workers=n, processes=processes)`` started for this
+        run. Default: in process up to 20 000 samples, else a local cluster with one
+        worker per CPU.
+    scheduler : str, optional
+        Address of an existing Dask scheduler to run on instead.
+    client : distributed.Client, optional
+        An existing client to run on instead.
+    processes : bool
+        Worker processes (True) or threads (False) for a local cluster.
+    progress : callable, optional
+        Called as ``progress(done_samples, total_samples)`` after each chunk.
+
+    Returns
+    -------
+    ToleranceResult
+        Identical for a given (seed, chunk_size, samples) whatever runs it.
+    """
+    tol = tolerance if tolerance is not None else tolerance_spec(design.spec)
+    changes = {k: v for k, v in (("samples", samples), ("seed", seed), ("chunk_size", chunk_size),
+                                 ("ranges_m", ranges_m)) if v is not None}
+    if changes:
+        tol = tol.replace(**changes)
+    if workers is not None:
+        require(isinstance(workers, int) and workers >= 0, "workers", workers, "an integer >= 0")
+    prob = _problem(design, tol)
+    sizes = _chunks(tol.samples, tol.chunk_size)
+    seeds = np.random.SeedSequence(tol.seed).spawn(len(sizes))
+    results: list[dict[str, np.ndarray] | None] = [None] * len(sizes)
+    done = 0
+    use_dask = client is not None or scheduler is not None or (
+        workers is not None and workers > 0) or (workers is None and tol.samples > 20000)
+    if not use_dask:
+        for i, (n, s) in enumerate(zip(sizes, seeds, strict=True)):
+            results[i] = _run_chunk(prob, n, s)
+            done += n
+            if progress:
+                progress(done, tol.samples)
+    else:
+        for i, res in _dask_chunks(prob, sizes, seeds, workers=workers, scheduler=scheduler,
+                                   client=client, processes=processes):
+            results[i] = res
+            done += sizes[i]
+            if progress:
+                progress(done, tol.samples)
+    cat = {k: np.concatenate([r[k] for r in results]) for k in results[0]}  # type: ignore[index]
+    return ToleranceResult(design_name=design.spec.name, tolerance=tol, mirror_names=prob.names,
+                           ranges_m=prob.ranges, seed=tol.seed, chunk_size=tol.chunk_size,
+                           n_samples=tol.samples, **cat)
+
+
+def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
+    """Yield ``(chunk index, result)`` as chunks finish on a Dask cluster."""
+    import logging
+
+    from distributed import Client, LocalCluster, as_completed
+
+    own_cluster = own_client = None
+    try:
+        if client is None:
+            if scheduler is not None:
+                client = own_client = Client(scheduler)
+            else:
+                n = workers or min(os.cpu_count() or 1, 8)
+                own_cluster = LocalCluster(n_workers=n, processes=processes, threads_per_worker=1,
+                                           dashboard_address=None, silence_logs=logging.ERROR)
+                client = own_client = Client(own_cluster)
+        prob_f = client.scatter(prob, broadcast=True)
+        futures = {client.submit(_run_chunk, prob_f, n, s, pure=False): i
+                   for i, (n, s) in enumerate(zip(sizes, seeds, strict=True))}
+        for fut in as_completed(futures):
+            i = futures[fut]
+            yield i, fut.result()
+            fut.release()
+    finally:
+        if own_client is not None:
+            own_client.close()
+        if own_cluster is not None:
+            own_cluster.close()
+
+
+# ---------------------------------------------------------------------------------------
+# sensitivities
+
+
+def _bearing_at(patch: MirrorPatch, theta: np.ndarray, D: float) -> np.ndarray:
+    _, hit, out = reflect_rays(np.zeros((len(theta), 3)), _dirs(theta), patch.origin_, patch.normal_)
+    return bearing_of(arc_point(hit, out, D))
+
+
+@dataclass(frozen=True, eq=False)
+class SensitivityResult:
+    """d(bearing at D)/d(parameter), per mirror and beam.
+
+    Attributes
+    ----------
+    design_name : str
+    design_distance_m : float
+    mirror_names : tuple of str
+    steps : dict name -> (b,) int
+    finite_difference : dict name -> dict parameter -> (b,) float
+        Central differences through :meth:`MirrorPatch.perturbed` / ``transformed`` and
+        the exact trace [rad per rad, rad per m].
+    closed_form : dict name -> dict parameter -> (b,) float
+        From eq. 1 differentiated analytically (NaN where there is none: lidar pitch).
+    """
+
+    design_name: str
+    design_distance_m: float
+    mirror_names: tuple[str, ...]
+    steps: dict[str, np.ndarray]
+    finite_difference: dict[str, dict[str, np.ndarray]]
+    closed_form: dict[str, dict[str, np.ndarray]]
+
+    def table(self) -> list[dict[str, Any]]:
+        """Rows (mirror, parameter): mean/min/max over beams in deg per deg or deg per mm."""
+        rows = []
+        for name in self.mirror_names:
+            for p, unit in PARAMETERS.items():
+                fd = self.finite_difference[name][p]
+                cf = self.closed_form[name][p]
+                scale = 1.0 if unit == "rad" else 1e-3   # per m -> per mm
+                conv = np.degrees(fd * scale) if unit == "m" else fd
+                rows.append({
+                    "mirror": name, "parameter": p,
+                    "unit": "deg/deg" if unit == "rad" else "deg/mm",
+                    "mean": float(np.mean(conv)), "min": float(np.min(conv)),
+                    "max": float(np.max(conv)),
+                    "closed_form_max_diff": (float(np.max(np.abs(cf - fd)) * (
+                        np.degrees(scale) if unit == "m" else 1.0))
+                        if np.all(np.isfinite(cf)) else None),
+                })
+        return rows
+
+
+def sensitivities(design: Design, D: float | None = None, h_rad: float = 1e-6,
+                  h_m: float = 1e-6) -> SensitivityResult:
+    """Sensitivity of every reflected beam's bearing at D to each mounting parameter.
+
+    Finite differences are central, with steps ``h_rad`` / ``h_m`` (truncation error
+    ``O(h^2)`` ~ 1e-12, round-off ~ 1e-16/h ~ 1e-10 relative). The closed forms come from
+    eq. 1, ``b = theta_b + s (2 theta_r + asin(OZ sin 2theta_r / D) - pi)``:
+
+    * ``dd``: theta_r fixed, ``OZ`` grows by ``dd / cos theta_r``, so
+      ``db/dd = 2 s sin(theta_r) / AM`` (``AM = sqrt(D^2 - OA^2)``);
+    * ``dalpha``: the mirror turns about O: ``d theta_r / dalpha`` from the normal,
+      ``OZ = d / cos theta_r`` with ``d`` fixed;
+    * ``dbeta``: to first order the tilt about a hinge at height ``h`` moves the mirror
+      along its outward normal by ``h * dbeta`` (the out-of-plane turn is second order):
+      ``db/dbeta = h * db/dd``;
+    * lidar yaw = minus dalpha; lidar x/y offset = minus the normal's x/y times ``db/dd``.
+    """
+    D = float(design.design_distance_m if D is None else D)
+    lid = design.lidar
+    fd_all, cf_all, steps = {}, {}, {}
+    ez = np.array([0.0, 0.0, 1.0])
+    for m in design.mirrors:
+        th = lid.bearing_from_step(m.steps)
+        steps[m.name] = m.steps.copy()
+        patch = m.patch
+
+        def b_pert(k: int, h: float, patch=patch, th=th) -> np.ndarray:
+            a = np.zeros(3)
+            a[k] = h
+            return _bearing_at(patch.perturbed(Perturbation.from_array(a)), th, D)
+
+        def b_mount(k: int, h: float, patch=patch, th=th) -> np.ndarray:
+            a = np.zeros(5)
+            a[k] = h
+            mnt = LidarMount.from_array(a)
+            R = mnt.rotation()
+            return _bearing_at(patch.transformed(R.T, -R.T @ np.asarray(mnt.offset)), th, D)
+
+        fd = {}
+        for k, p in enumerate(("dalpha", "dbeta", "dd")):
+            h = h_m if p == "dd" else h_rad
+            fd[p] = wrap_angle(b_pert(k, h) - b_pert(k, -h)) / (2 * h)
+        for k, p in ((0, "lidar_yaw"), (1, "lidar_pitch"), (2, "lidar_x"), (3, "lidar_y")):
+            h = h_m if k >= 2 else h_rad
+            fd[p] = wrap_angle(b_mount(k, h) - b_mount(k, -h)) / (2 * h)
+        # closed forms from eq. 1
+        n = patch.normal_
+        n_out = n if patch.origin_ @ n > 0 else -n
+        u = _dirs(th)
+        un = u @ n
+        theta_r = np.arccos(np.clip(np.abs(un), 0.0, 1.0))
+        oz = patch.standoff / np.cos(theta_r)
+        oa = oz * np.sin(2 * theta_r)
+        am = np.sqrt(D**2 - oa**2)
+        s = m.sign
+        db_doz = s * np.sin(2 * theta_r) / am
+        db_dthr = s * (2 + 2 * oz * np.cos(2 * theta_r) / am)
+        db_dd = db_doz / np.cos(theta_r)
+        dthr_dalpha = -np.sign(un) * (u @ np.cross(ez, n)) / np.sin(theta_r)
+        db_dalpha = (db_dthr + db_doz * oz * np.tan(theta_r)) * dthr_dalpha
+        cf = {"dalpha": db_dalpha, "dbeta": patch.hinge_z * db_dd, "dd": db_dd,
+              "lidar_yaw": -db_dalpha, "lidar_pitch": np.full_like(th, np.nan),
+              "lidar_x": -n_out[0] * db_dd, "lidar_y": -n_out[1] * db_dd}
+        fd_all[m.name], cf_all[m.name] = fd, cf
+    return SensitivityResult(design_name=design.spec.name, design_distance_m=D,
+                             mirror_names=tuple(m.name for m in design.mirrors), steps=steps,
+                             finite_difference=fd_all, closed_form=cf_all)
