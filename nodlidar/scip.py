@@ -21,6 +21,7 @@ happens at the codec edge (:func:`ranges_mm_to_m`, :meth:`SensorParams.to_lidar_
 from __future__ import annotations
 
 import dataclasses
+import functools
 import re
 import warnings
 from collections.abc import Iterable, Mapping, Sequence
@@ -233,7 +234,7 @@ def decode_values(data: bytes | bytearray | memoryview, n_chars: int) -> np.ndar
 
     Parameters
     ----------
-    data : bytes
+    data : bytes or numpy.ndarray of uint8
         The concatenated data characters, sums and LFs already removed.
     n_chars : int
         Characters per value (2, 3 or 4).
@@ -249,7 +250,7 @@ def decode_values(data: bytes | bytearray | memoryview, n_chars: int) -> np.ndar
         ``'0'..'o'``.
     """
     _check_nchars(n_chars)
-    a = np.frombuffer(data, dtype=np.uint8)
+    a = data if isinstance(data, np.ndarray) else np.frombuffer(data, dtype=np.uint8)
     if a.size % n_chars:
         raise ProtocolError(
             f"scip data length = {a.size} is invalid; allowed: a multiple of {n_chars}"
@@ -290,29 +291,43 @@ def encode_data_block(encoded: bytes, width: int = DATA_LINE_CHARS) -> bytes:
     return b"".join(parts)
 
 
-def _verify_lines(lines: Sequence[bytes]) -> np.ndarray:
-    """Strictly verify many ``<content><sum>`` lines at once; return the joined content."""
-    if not lines:
-        return np.zeros(0, dtype=np.uint8)
-    lengths = np.fromiter((len(x) for x in lines), dtype=np.int64, count=len(lines))
-    if lengths.min() < 2:
+def _verify_block(block: bytes) -> np.ndarray:
+    """Strictly verify LF-terminated ``<content><sum>`` lines at once (vectorised).
+
+    Returns the joined content (sums and LFs removed) as a uint8 array.
+    """
+    a = np.frombuffer(block, dtype=np.uint8)
+    if a.size == 0:
+        return a
+    lf = np.flatnonzero(a == 0x0A)
+    if lf.size == 0 or lf[-1] != a.size - 1:
+        raise ProtocolError("scip data block does not end with LF; allowed: lines + sum + LF")
+    starts = np.empty(lf.size, dtype=np.intp)
+    starts[0] = 0
+    starts[1:] = lf[:-1] + 1
+    if (lf - starts).min() < 2:
         raise ProtocolError("scip data line is empty; allowed: content followed by a sum")
-    a = np.frombuffer(b"".join(lines), dtype=np.uint8)
-    ends = np.cumsum(lengths)
-    starts = ends - lengths
-    totals = np.add.reduceat(a.astype(np.int64), starts)
-    sum_chars = a[ends - 1].astype(np.int64)
-    want = ((totals - sum_chars) & 0x3F) + _CHAR0
-    bad = np.flatnonzero(want != sum_chars)
+    totals = np.add.reduceat(a, starts, dtype=np.int64)  # content + sum + LF
+    sums = a[lf - 1].astype(np.int64)
+    want = ((totals - sums - 0x0A) & 0x3F) + _CHAR0
+    bad = np.flatnonzero(want != sums)
     if bad.size:
         i = int(bad[0])
         raise ProtocolError(
-            f"scip checksum of data line {i} = {chr(sum_chars[i])!r} is invalid; "
+            f"scip checksum of data line {i} = {chr(sums[i])!r} is invalid; "
             f"allowed: {chr(want[i])!r}"
         )
     keep = np.ones(a.size, dtype=bool)
-    keep[ends - 1] = False
+    keep[lf] = False
+    keep[lf - 1] = False
     return a[keep]
+
+
+def _verify_lines(lines: Sequence[bytes]) -> np.ndarray:
+    """Strictly verify ``<content><sum>`` lines (no LF); return the joined content."""
+    if not lines:
+        return np.zeros(0, dtype=np.uint8)
+    return _verify_block(LF.join(lines) + LF)
 
 
 def decode_data_block(lines: Sequence[bytes], n_chars: int) -> np.ndarray:
@@ -710,6 +725,8 @@ class ScipReply:
         The status line was in SCIP 1.1 form (no sum).
     raw : bytes
         The message as received, including the final ``LF LF``.
+    payload : numpy.ndarray of uint8 or None
+        For verified GD/GS/MD/MS/TM replies: the body content joined, sums removed.
     """
 
     echo: str
@@ -717,6 +734,7 @@ class ScipReply:
     body: tuple[bytes, ...]
     scip1: bool = False
     raw: bytes = b""
+    payload: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def code(self) -> str:
@@ -729,8 +747,11 @@ class ScipReply:
         return self.status in ("00", "99") or (self.scip1 and self.status == "0")
 
 
+_PRINTABLE_RE = re.compile(rb"[\x20-\x7e]{2,}")
+
+
 def _echo_ok(line: bytes) -> bool:
-    return len(line) >= 2 and all(0x20 <= c < 0x7F for c in line)
+    return _PRINTABLE_RE.fullmatch(line) is not None
 
 
 def parse_reply(message: bytes) -> ScipReply:
@@ -762,11 +783,16 @@ def parse_reply(message: bytes) -> ScipReply:
     echo = lines[0].decode("ascii")
     body = tuple(lines[2:])
     code = split_command(echo)[0]
+    payload = None
     if not scip1 and code in _STRICT_CODES:
-        _verify_lines(body)
+        if body:
+            start = len(lines[0]) + len(lines[1]) + 2
+            payload = _verify_block(text[start:] + LF)
+        else:
+            payload = np.zeros(0, dtype=np.uint8)
     elif any(len(x) == 0 for x in body):
         raise ProtocolError("scip message has an empty body line; allowed: LF LF only at end")
-    return ScipReply(echo=echo, status=status, body=body, scip1=scip1, raw=msg)
+    return ScipReply(echo=echo, status=status, body=body, scip1=scip1, raw=msg, payload=payload)
 
 
 def check_status(reply: ScipReply, allowed: Sequence[str] = ("00", "99")) -> ScipReply:
@@ -817,9 +843,13 @@ class ScipFramer:
 
     def feed(self, data: bytes) -> list[bytes]:
         """Add received bytes; return the complete valid messages, oldest first."""
+        return [r.raw for r in self.feed_replies(data)]
+
+    def feed_replies(self, data: bytes) -> list[ScipReply]:
+        """Like :meth:`feed`, returning the parsed (verified) :class:`ScipReply` objects."""
         buf = self._buf
         buf += data
-        out: list[bytes] = []
+        out: list[ScipReply] = []
         start = 0
         while True:
             i = buf.find(b"\n\n", start)
@@ -842,32 +872,32 @@ class ScipFramer:
         return out
 
     @staticmethod
-    def _valid(msg: bytes) -> bool:
+    def _valid(msg: bytes) -> ScipReply | None:
         j = msg.find(LF)
         if j < 0 or not _ECHO_RE.fullmatch(msg[:j]):
-            return False
+            return None
         try:
-            parse_reply(msg)
+            return parse_reply(msg)
         except ProtocolError:
-            return False
-        return True
+            return None
 
-    def _salvage(self, cand: bytes) -> bytes | None:
+    def _salvage(self, cand: bytes) -> ScipReply | None:
         stripped = cand.lstrip(b"\n")  # leading LFs are never part of a message
         lead = len(cand) - len(stripped)
-        if self._valid(stripped):
+        reply = self._valid(stripped)
+        if reply is not None:
             self.discarded_bytes += lead
-            return stripped
+            return reply
         self.rejected += 1
         offset = lead
         for line in stripped[:-2].split(LF)[:-1]:
             # a suffix of this line may be a real echo preceded by garbage
             for j in range(len(line) - 1):
                 if line[j:j + 2] in _KNOWN_CODES and _ECHO_RE.fullmatch(line, j):
-                    sub = cand[offset + j:]
-                    if (offset + j) > lead and self._valid(sub):
+                    reply = self._valid(cand[offset + j:]) if offset + j > lead else None
+                    if reply is not None:
                         self.discarded_bytes += offset + j
-                        return sub
+                        return reply
             offset += len(line) + 1
         self.discarded_bytes += len(cand)
         return None
@@ -934,6 +964,9 @@ class ScanFrame:
         return self.request.steps
 
 
+_parse_request_cached = functools.lru_cache(maxsize=256)(lambda echo: DistanceRequest.parse(echo))
+
+
 def decode_scan(reply: ScipReply | bytes) -> ScanFrame:
     """Decode a distance message into a :class:`ScanFrame`.
 
@@ -948,7 +981,7 @@ def decode_scan(reply: ScipReply | bytes) -> ScanFrame:
     if not isinstance(reply, ScipReply):
         reply = parse_reply(reply)
     try:
-        req = DistanceRequest.parse(reply.echo)
+        req = _parse_request_cached(reply.echo)
     except (ScipRequestError, ParameterError) as e:
         raise ProtocolError(f"scip scan echo = {reply.echo!r} is invalid; {e}") from None
     check_status(reply)
@@ -960,8 +993,9 @@ def decode_scan(reply: ScipReply | bytes) -> ScanFrame:
     ts_line = reply.body[0]
     if len(ts_line) != 5:
         raise ProtocolError(f"scip timestamp line = {ts_line!r} is invalid; allowed: 4 chars + sum")
-    ts = int(decode_values(verify_line(ts_line), 4)[0])
-    ranges = decode_data_block(reply.body[1:], req.n_chars)
+    payload = reply.payload if reply.payload is not None else _verify_lines(reply.body)
+    ts = int(decode_values(payload[:4], 4)[0])
+    ranges = decode_values(payload[4:], req.n_chars)
     if ranges.size != req.n_values:
         raise ProtocolError(
             f"scip {req.command} value count = {ranges.size} is invalid; "

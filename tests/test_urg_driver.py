@@ -273,5 +273,6 @@ def test_soak_10000_scans_memory_flat():
         assert rss[1] - rss[0] < 8 * 2**20, f"RSS grew {(rss[1] - rss[0]) / 2**20:.1f} MiB"
         st = drv.stats
         assert st.scans >= 10_000 and st.rejected_messages > 0
-        # everything the device sent is accounted for: delivered + dropped
-        assert st.dropped_scans < 500
+        # every lost scan is explained by a rejected/bad message or an emulator skip
+        lost = st.rejected_messages + st.bad_scans + emu.stats.scans_skipped
+        assert abs(st.dropped_scans - lost) <= 0.02 * lost + 5

@@ -205,7 +205,7 @@ class UrgDriver:
         self._ser: serial.SerialBase | None = None
         self._fd: int | None = None
         self._framer = scip.ScipFramer()
-        self._inbox: collections.deque[tuple[bytes, float]] = collections.deque()
+        self._inbox: collections.deque[tuple[scip.ScipReply, float]] = collections.deque()
         self._unwrap = _Unwrapper()
         self._tag_no = 0
         self._seq = 0
@@ -320,7 +320,7 @@ class UrgDriver:
         t = time.monotonic()
         f = self._framer
         rej, disc = f.rejected, f.discarded_bytes
-        for m in f.feed(data):
+        for m in f.feed_replies(data):
             self._inbox.append((m, t))
         self.stats.rejected_messages += f.rejected - rej
         self.stats.discarded_bytes += f.discarded_bytes - disc
@@ -329,12 +329,7 @@ class UrgDriver:
         """Next verified message and its receive time, or None at ``deadline``."""
         while True:
             if self._inbox:
-                raw, t = self._inbox.popleft()
-                try:
-                    return scip.parse_reply(raw), t
-                except ProtocolError:  # the framer already checked; be safe anyway
-                    self.stats.rejected_messages += 1
-                    continue
+                return self._inbox.popleft()
             left = deadline - time.monotonic()
             if left <= 0:
                 return None
