@@ -1,0 +1,237 @@
+"""Export of the mirror mounts: STEP/STL files, preview image and a JSON manifest.
+
+``export_cad(design, "cad_out")`` writes ``cad_out/<design name>/``::
+
+    assembly_deployed.step, assembly_lifted.step   named, coloured assemblies (mm)
+    parts/<part>.step, parts/<part>.stl            each printable part (head frame, deployed)
+    meshes/<state>/<part>.stl                       every part in each state (validation, preview)
+    preview.png                                     both states, rendered from the STL triangles
+    manifest.json                                   parameters, parts, mirror face poses, files
+
+Library code never prints; pass ``progress=callable(stage: str, fraction: float)`` to
+follow the export.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .mounts import (
+    STATES,
+    MountModel,
+    build_assembly,
+    build_mounts,
+    mirror_face_poses,
+    part_shapes,
+)
+from .params import MountParams, mount_params_from_spec
+
+__all__ = ["Manifest", "export_cad", "MANIFEST_NAME"]
+
+MANIFEST_NAME = "manifest.json"
+Progress = Callable[[str, float], None]
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """What :func:`export_cad` wrote (paths relative to :attr:`folder`)."""
+
+    folder: Path
+    design_name: str
+    states: tuple[str, ...]
+    parts: list[dict[str, Any]]
+    mirror_faces: dict[str, dict[str, dict[str, Any]]]
+    hinge_axes: dict[str, dict[str, Any]]
+    parameters: dict[str, Any]
+    files: list[str] = field(default_factory=list)
+
+    @property
+    def path(self) -> Path:
+        """The manifest file."""
+        return self.folder / MANIFEST_NAME
+
+    def file(self, rel: str) -> Path:
+        return self.folder / rel
+
+    def printable_parts(self) -> list[str]:
+        return [p["name"] for p in self.parts if p["kind"] == "printable"]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "design": self.design_name,
+            "units": {"length": "mm", "frame": "head frame: x forward, y left, z up, "
+                      "scan plane z = 0, lidar optical axis = z"},
+            "states": list(self.states),
+            "parameters": self.parameters,
+            "parts": self.parts,
+            "hinge_axes": self.hinge_axes,
+            "mirror_faces": self.mirror_faces,
+            "files": self.files,
+        }
+
+    @classmethod
+    def load(cls, folder: str | Path) -> Manifest:
+        folder = Path(folder)
+        d = json.loads((folder / MANIFEST_NAME).read_text())
+        return cls(folder=folder, design_name=d["design"], states=tuple(d["states"]),
+                   parts=d["parts"], mirror_faces=d["mirror_faces"],
+                   hinge_axes=d["hinge_axes"], parameters=d["parameters"], files=d["files"])
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+def _render_preview(meshes: dict[str, dict[str, Any]], colors: dict[str, tuple], path: Path,
+                    title: str) -> None:
+    """Render both states' triangles with matplotlib (Agg) into ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    states = list(meshes)
+    fig = Figure(figsize=(6 * len(states), 5.5), dpi=110)
+    lo = np.min([m.bounds[0] for st in meshes.values() for m in st.values()], axis=0)
+    hi = np.max([m.bounds[1] for st in meshes.values() for m in st.values()], axis=0)
+    mid, half = (lo + hi) / 2, np.max(hi - lo) / 2
+    light = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    for k, st in enumerate(states):
+        ax = fig.add_subplot(1, len(states), k + 1, projection="3d")
+        for name, mesh in meshes[st].items():
+            tri = mesh.triangles
+            shade = 0.45 + 0.55 * np.abs(mesh.face_normals @ light)
+            rgba = np.array(colors[name], float)
+            fc = np.clip(rgba[None, :3] * shade[:, None], 0, 1)
+            fc = np.c_[fc, np.full(len(fc), rgba[3])]
+            ax.add_collection3d(Poly3DCollection(tri, facecolors=fc, edgecolors="none"))
+        for i, setter in enumerate((ax.set_xlim, ax.set_ylim, ax.set_zlim)):
+            setter(mid[i] - half, mid[i] + half)
+        ax.set_box_aspect((1, 1, 1))
+        ax.view_init(elev=28, azim=-135)
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("y [mm]")
+        ax.set_zlabel("z [mm]")
+        ax.set_title(f"{title}: {st}")
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+def export_cad(design: Any, out_dir: str | Path = "cad_out", *, state: str = "both",
+               params: MountParams | None = None, preview: bool = True,
+               progress: Progress | None = None) -> Manifest:
+    """Build the mounts of ``design`` and write them to ``out_dir/<design name>/``.
+
+    Parameters
+    ----------
+    design : nodlidar.solver.Design
+        A solved design.
+    out_dir : path
+        Root output folder (``cad_out``); the design's own folder is created inside.
+    state : {"both", "deployed", "lifted"}
+        Which assembly states to write (printable parts are always written as built).
+    params : MountParams, optional
+        Fabrication parameters; default: the design file's ``[cad]`` table.
+    preview : bool
+        Render ``preview.png``.
+    progress : callable, optional
+        Called as ``progress(stage, fraction)``.
+
+    Returns
+    -------
+    Manifest
+    """
+    import cadquery as cq
+    import trimesh
+
+    from ..errors import ParameterError
+
+    if state not in ("both", *STATES):
+        raise ParameterError("state", state, "both, deployed or lifted")
+    states = STATES if state == "both" else (state,)
+    report = progress or (lambda stage, frac: None)
+    P = params or mount_params_from_spec(design.spec)
+    folder = Path(out_dir) / design.spec.name
+    (folder / "parts").mkdir(parents=True, exist_ok=True)
+    files: list[str] = []
+
+    report("build", 0.0)
+    model: MountModel = build_mounts(design, P)
+    tol, atol = P.stl_tolerance_mm, P.stl_angular_tolerance_rad
+    parts_info: list[dict[str, Any]] = []
+    n_steps = len(model.parts) + 2 * len(states) + 2
+    done = 0
+
+    def tick(stage: str) -> None:
+        nonlocal done
+        done += 1
+        report(stage, min(done / n_steps, 1.0))
+
+    for p in model.parts:
+        bb = p.shape.BoundingBox()
+        info: dict[str, Any] = {
+            "name": p.name, "kind": p.kind, "side": p.side, "description": p.description,
+            "volume_mm3": float(p.shape.Volume()),
+            "bbox_mm": [[bb.xmin, bb.ymin, bb.zmin], [bb.xmax, bb.ymax, bb.zmax]],
+            "faces": len(p.shape.Faces()),
+        }
+        if p.kind == "printable":
+            step, stl = f"parts/{p.name}.step", f"parts/{p.name}.stl"
+            cq.exporters.export(p.shape, str(folder / step))
+            cq.exporters.export(p.shape, str(folder / stl), tolerance=tol, angularTolerance=atol)
+            info["files"] = [step, stl]
+            files += [step, stl]
+        parts_info.append(info)
+        tick(f"part {p.name}")
+
+    meshes: dict[str, dict[str, Any]] = {}
+    for st in states:
+        assy = build_assembly(model, st)
+        rel = f"assembly_{st}.step"
+        assy.export(str(folder / rel))
+        files.append(rel)
+        tick(f"assembly {st}")
+        (folder / "meshes" / st).mkdir(parents=True, exist_ok=True)
+        meshes[st] = {}
+        for name, shape in part_shapes(model, st).items():
+            rel = f"meshes/{st}/{name}.stl"
+            cq.exporters.export(shape, str(folder / rel), tolerance=tol, angularTolerance=atol)
+            files.append(rel)
+            if preview:
+                meshes[st][name] = trimesh.load(str(folder / rel), force="mesh")
+        tick(f"meshes {st}")
+
+    if preview:
+        colors = {p.name: p.color for p in model.parts}
+        _render_preview(meshes, colors, folder / "preview.png", design.spec.name)
+        files.append("preview.png")
+    tick("preview")
+
+    poses = mirror_face_poses(design, P)
+    poses = {m: {s: v for s, v in st.items() if s in states} for m, st in poses.items()}
+    manifest = Manifest(
+        folder=folder, design_name=design.spec.name, states=tuple(states), parts=parts_info,
+        mirror_faces=poses, hinge_axes={s: a.to_dict() for s, a in model.axes.items()},
+        parameters={"design": _jsonable(design.spec.to_dict()), "cad": P.to_dict(),
+                    "derived_mm": _jsonable(model.extras)},
+        files=[*files, MANIFEST_NAME],
+    )
+    manifest.path.write_text(json.dumps(_jsonable(manifest.to_dict()), indent=2))
+    tick("manifest")
+    report("done", 1.0)
+    return manifest

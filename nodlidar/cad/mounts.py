@@ -1,0 +1,542 @@
+"""Parametric mirror mounts: pure functions from a solved design + :class:`MountParams`.
+
+Everything is built in the head frame (x forward, y left, z up, scan plane z = 0,
+lidar optical axis = z axis) in **millimetres**; metres from the solver are converted
+once, in :func:`side_layouts`. cadquery is imported inside the build functions only, so
+the numpy layout (:func:`hinge_axes`, :func:`mirror_face_poses`) works without it.
+
+Parts
+-----
+``base`` (printable)
+    Plate under the lidar (its top is the lidar's housing base, ``scan_plane_height``
+    below the scan plane) with 4 lidar holes and 4 base holes, and per side a front hinge
+    pillar (bore for the hinge pin) and a servo cradle (pocket for the lift servo, screw
+    holes). The plate never reaches past ``clearance_mm`` of the lifted carriers.
+``carrier_L`` / ``carrier_R`` (printable)
+    One per side, holding all of that side's glass: a back plate whose front face is the
+    glass datum (exactly ``glass_thickness`` behind the solved reflecting face), a skirt
+    whose top is the glass seat (``z_min`` of the patch), a hinge tube with a bore on the
+    side's hinge axis, and a horn flange (4 holes) at the outer end for the servo horn.
+    The pocket is open in front and at the inner end so no wall stands in a beam path;
+    the glass is bonded to the datum faces.
+``glass_<mirror>`` (reference)
+    The mirror glass: its front face *is* the solved :class:`~nodlidar.geometry.MirrorPatch`.
+``servo_<side>``, ``lidar`` (reference)
+    Envelopes used for interference checks (servo body + horn; lidar housing + head).
+
+Hinge axis (one per side carrier)
+---------------------------------
+The solver gives every mirror its own hinge line (``origin + hinge_z*up + s*along``),
+but chained mirrors of one side have different ``along`` directions and are turned by one
+motor. The common axis is horizontal at ``z = hinge_z``, parallel to the chord from the
+outer end of the outermost mirror to the inner end of the innermost one, and shifted
+(perpendicular, horizontally) to the most lidar-ward point of the side's mirror faces, so
+every part of the carrier lies on or behind it (away from the lidar). Lifting turns the
+carrier by ``lift_angle`` about this axis with the top swinging away from the lidar, so
+all carrier material ends up below ``hinge_z + hinge_boss_radius``: out of the beams.
+In the deployed state the faces are exactly the solver's patches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..errors import InfeasibleDesignError, NodlidarError, ParameterError
+from .params import MountParams
+
+if TYPE_CHECKING:  # pragma: no cover
+    import cadquery as cq
+
+    from ..solver import Design
+
+__all__ = [
+    "CadBuildError",
+    "STATES",
+    "HingeAxis",
+    "SideLayout",
+    "Part",
+    "MountModel",
+    "side_layouts",
+    "hinge_axes",
+    "lift_transform",
+    "mirror_face_poses",
+    "build_mounts",
+    "part_shapes",
+    "build_assembly",
+]
+
+STATES = ("deployed", "lifted")
+MM_PER_M = 1000.0
+EZ = np.array([0.0, 0.0, 1.0])
+
+
+class CadBuildError(NodlidarError):
+    """The mounts cannot be built from this design and these parameters (message says why)."""
+
+
+def mm_from_m(x: Any) -> np.ndarray:
+    """Metres -> millimetres (the only unit conversion of the CAD layer)."""
+    return np.asarray(x, dtype=float) * MM_PER_M
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return np.asarray(v, float) / np.linalg.norm(v)
+
+
+def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
+    a = _unit(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+# ---------------------------------------------------------------------------------------
+# layout (numpy only)
+
+
+@dataclass(frozen=True)
+class HingeAxis:
+    """A side carrier's hinge axis (head frame, mm).
+
+    Attributes
+    ----------
+    side : str
+        ``"L"`` or ``"R"``.
+    point_mm : (3,) float
+        A point of the axis (level with ``hinge_z``, at the outer end of the mirrors).
+    direction : (3,) float
+        Unit direction, from the outer end towards the inner end of the side's mirrors.
+    outward : (3,) float
+        Unit horizontal direction perpendicular to the axis, away from the lidar.
+    lift_rad : float
+        Signed rotation about ``direction`` [rad] that lifts the carrier (top away).
+    """
+
+    side: str
+    point_mm: tuple[float, float, float]
+    direction: tuple[float, float, float]
+    outward: tuple[float, float, float]
+    lift_rad: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"side": self.side, "point_mm": list(self.point_mm),
+                "direction": list(self.direction), "outward": list(self.outward),
+                "lift_deg": float(np.degrees(self.lift_rad))}
+
+
+@dataclass(frozen=True, eq=False)
+class SideLayout:
+    """Plan-view geometry of one side carrier (mm), derived from the solved patches."""
+
+    side: str
+    mirror_names: tuple[str, ...]
+    axis: HingeAxis
+    back_polygons: tuple[np.ndarray, ...]   # (k, 2) xy polygons of the back plate
+    skirt_polygon: np.ndarray               # (k, 2) convex hull
+    u_lo: float                             # carrier body extent along the axis [mm]
+    u_hi: float
+    chained: bool
+
+
+def _face_ends(patch) -> tuple[np.ndarray, np.ndarray]:
+    """(outer, inner) ends of a patch's face at z = 0 in mm (outer = larger |bearing|)."""
+    ends = mm_from_m(patch.point(np.array([patch.s_min, patch.s_max])))
+    b = np.abs(np.arctan2(ends[:, 1], ends[:, 0]))
+    return (ends[0], ends[1]) if b[0] >= b[1] else (ends[1], ends[0])
+
+
+def _check_vertical(design: Design) -> None:
+    for m in design.mirrors:
+        p = m.patch
+        if abs(p.normal_[2]) > 1e-9 or abs(p.up_[2] - 1.0) > 1e-9:
+            raise CadBuildError(f"mirror {m.name} is not vertical; the mounts support "
+                                "vertical mirrors (unperturbed solved designs) only")
+
+
+def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
+    """Plan-view layout of each side carrier (see the module docstring for the axis rule)."""
+    from scipy.spatial import ConvexHull
+
+    _check_vertical(design)
+    t = mm_from_m(design.spec.mirror.glass_thickness_m)
+    w = params.wall_mm
+    clr = params.pocket_clearance_mm
+    hinge_z = float(mm_from_m(design.spec.mirror.hinge_z_m))
+    lift = float(design.spec.mirror.lift_angle_rad)
+    out: dict[str, SideLayout] = {}
+    for side in ("L", "R"):
+        ms = sorted((m for m in design.mirrors if m.side == side), key=lambda m: m.index)
+        if not ms:
+            continue
+        ends = [_face_ends(m.patch) for m in ms]
+        normals = [np.asarray(m.patch.normal_, float) for m in ms]
+        dirs = [_unit(i - o) for o, i in ends]
+        chained = all(np.linalg.norm(ends[j][1] - ends[j + 1][0]) < 1e-6
+                      for j in range(len(ms) - 1))
+        # concave joints only (the back offsets of a convex joint would overlap)
+        for j in range(len(ms) - 1):
+            turn = np.cross(dirs[j], dirs[j + 1])[2]
+            towards_lidar = np.cross(dirs[j], normals[j])[2]
+            if turn * towards_lidar < -1e-12:
+                chained = False
+        o1 = ends[0][0] - clr * dirs[0]
+        im = ends[-1][1] + clr * dirs[-1]
+        fronts = [o1] + [p for o, i in ends for p in (o, i)] + [im]
+        if chained:
+            inner, outer = [], []
+            for j, (o, i) in enumerate(ends):
+                o = o1 if j == 0 else o
+                i = im if j == len(ms) - 1 else i
+                n = normals[j]
+                inner += [o - t * n, i - t * n]
+                outer += [o - (t + w) * n, i - (t + w) * n]
+            polys = (np.array(inner + outer[::-1])[:, :2],)
+        else:
+            polys = []
+            for j, (o, i) in enumerate(ends):
+                o = o - clr * dirs[j]
+                i = i + clr * dirs[j]
+                n = normals[j]
+                polys.append(np.array([o - t * n, i - t * n, i - (t + w) * n,
+                                       o - (t + w) * n])[:, :2])
+            polys = tuple(polys)
+        # hinge axis: chord direction, through the most lidar-ward face point
+        c = _unit(np.r_[(ends[-1][1] - ends[0][0])[:2], 0.0])
+        wdir = np.cross(c, EZ)
+        if wdir @ (-normals[0]) < 0:
+            wdir = -wdir
+        e = [(p - ends[0][0]) @ wdir for p in fronts]
+        a0 = ends[0][0] + min(e) * wdir
+        a0 = np.array([a0[0], a0[1], hinge_z])
+        # top (+z) must go to +outward: z -> z cos + (c x z) sin
+        sign = 1.0 if np.cross(c, EZ) @ wdir > 0 else -1.0
+        axis = HingeAxis(side=side, point_mm=tuple(map(float, a0)), direction=tuple(map(float, c)),
+                         outward=tuple(map(float, wdir)), lift_rad=sign * lift)
+        pts = np.vstack([*polys, np.array(fronts)[:, :2]])
+        u = (pts - a0[:2]) @ c[:2]
+        ax_pts = np.array([a0[:2] + u.min() * c[:2], a0[:2] + u.max() * c[:2]])
+        allp = np.vstack([pts, ax_pts])
+        hull = allp[ConvexHull(allp).vertices]
+        out[side] = SideLayout(side=side, mirror_names=tuple(m.name for m in ms), axis=axis,
+                               back_polygons=polys, skirt_polygon=hull, u_lo=float(u.min()),
+                               u_hi=float(u.max()), chained=chained)
+    return out
+
+
+def hinge_axes(design: Design, params: MountParams | None = None) -> dict[str, HingeAxis]:
+    """The hinge axis of each side carrier (mm), keyed by side."""
+    params = params or MountParams()
+    return {s: lay.axis for s, lay in side_layouts(design, params).items()}
+
+
+def lift_transform(axis: HingeAxis, state: str) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid motion ``p -> R p + t`` (mm) of a side's carrier in ``state``."""
+    if state not in STATES:
+        raise ParameterError("state", state, " or ".join(STATES))
+    if state == "deployed":
+        return np.eye(3), np.zeros(3)
+    R = _rot(np.asarray(axis.direction), axis.lift_rad)
+    p = np.asarray(axis.point_mm)
+    return R, p - R @ p
+
+
+def mirror_face_poses(design: Design, params: MountParams | None = None
+                      ) -> dict[str, dict[str, dict[str, Any]]]:
+    """Pose of every mirror face in both states: ``{name: {state: {...}}}``.
+
+    Each pose has ``origin_mm`` (the patch origin), ``normal`` (unit, towards the lidar
+    when deployed), ``along``, ``up`` and ``corners_mm`` (4 x 3, order of
+    :meth:`~nodlidar.geometry.MirrorPatch.corners`).
+    """
+    params = params or MountParams()
+    axes = hinge_axes(design, params)
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for m in design.mirrors:
+        p = m.patch
+        out[m.name] = {}
+        for state in STATES:
+            R, tr = lift_transform(axes[m.side], state)
+            out[m.name][state] = {
+                "origin_mm": (R @ mm_from_m(p.origin_) + tr).tolist(),
+                "normal": (R @ p.normal_).tolist(),
+                "along": (R @ p.along_).tolist(),
+                "up": (R @ p.up_).tolist(),
+                "corners_mm": (mm_from_m(p.corners()) @ R.T + tr).tolist(),
+            }
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# solids (cadquery)
+
+
+@dataclass(frozen=True, eq=False)
+class Part:
+    """One part of the mount assembly (shape in the deployed state, head frame, mm)."""
+
+    name: str
+    kind: str                  # "printable" or "reference"
+    shape: Any                 # cq.Shape
+    side: str | None = None    # moves with that side's carrier
+    color: tuple[float, float, float, float] = (0.7, 0.7, 0.7, 1.0)
+    description: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class MountModel:
+    """All parts of one design's mounts plus the layout they came from."""
+
+    design: Any
+    params: MountParams
+    layouts: dict[str, SideLayout]
+    parts: tuple[Part, ...]
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    def part(self, name: str) -> Part:
+        for p in self.parts:
+            if p.name == name:
+                return p
+        raise KeyError(name)
+
+    @property
+    def axes(self) -> dict[str, HingeAxis]:
+        return {s: lay.axis for s, lay in self.layouts.items()}
+
+
+def _cq():
+    try:
+        import cadquery as cq
+    except ImportError as exc:  # pragma: no cover - cadquery is a dependency
+        raise CadBuildError(f"CAD export needs cadquery ({exc})") from None
+    return cq
+
+
+def _prism(cq, poly_xy: np.ndarray, z0: float, z1: float):
+    """Vertical prism over a plan polygon (mm)."""
+    pts = [tuple(map(float, p)) for p in poly_xy]
+    return (cq.Workplane("XY", origin=(0, 0, float(z0))).polyline(pts).close()
+            .extrude(float(z1 - z0)).val())
+
+
+def _axis_box(cq, ax: HingeAxis, u: tuple[float, float], e: tuple[float, float],
+              z: tuple[float, float]):
+    """Box in the axis frame (u along the axis, e outward, z up; z absolute, mm)."""
+    a0 = np.asarray(ax.point_mm)
+    c, w = np.asarray(ax.direction), np.asarray(ax.outward)
+    corners = [a0[:2] + uu * c[:2] + ee * w[:2] for uu, ee in
+               ((u[0], e[0]), (u[1], e[0]), (u[1], e[1]), (u[0], e[1]))]
+    return _prism(cq, np.array(corners), z[0], z[1])
+
+
+def _axis_cyl(cq, ax: HingeAxis, radius: float, u0: float, u1: float,
+              offset_e: float = 0.0, offset_z: float = 0.0):
+    """Cylinder coaxial (or parallel, offset in e/z) to the hinge axis from u0 to u1 (mm)."""
+    a0 = np.asarray(ax.point_mm)
+    c, w = np.asarray(ax.direction), np.asarray(ax.outward)
+    base = a0 + u0 * c + offset_e * w + offset_z * EZ
+    return cq.Solid.makeCylinder(float(radius), float(u1 - u0), cq.Vector(*map(float, base)),
+                                 cq.Vector(*map(float, c)))
+
+
+def _vcyl(cq, xy, radius: float, z0: float, z1: float):
+    return cq.Solid.makeCylinder(float(radius), float(z1 - z0),
+                                 cq.Vector(float(xy[0]), float(xy[1]), float(z0)),
+                                 cq.Vector(0, 0, 1))
+
+
+def _fuse(shapes):
+    first, *rest = shapes
+    return first.fuse(*rest).clean() if rest else first
+
+
+def _single_solid(cq, shape, name: str):
+    solids = shape.Solids()
+    if len(solids) != 1:
+        raise CadBuildError(f"part {name} came out as {len(solids)} solids; the parameters "
+                            "leave pieces unconnected")
+    s = solids[0]
+    if not s.isValid():
+        raise CadBuildError(f"part {name} is not a valid solid (OCCT check failed)")
+    return s
+
+
+def build_mounts(design: Design, params: MountParams | None = None) -> MountModel:
+    """Build every part of the mounts for ``design`` (deployed state, head frame, mm).
+
+    Raises
+    ------
+    ParameterError
+        A fabrication parameter does not fit this design (the message names it).
+    CadBuildError
+        The geometry cannot be built (e.g. the servo does not fit under the hinge).
+    """
+    cq = _cq()
+    params = params or MountParams()
+    P = params
+    spec = design.spec
+    lidar = design.lidar
+    layouts = side_layouts(design, P)
+    hinge_z = float(mm_from_m(spec.mirror.hinge_z_m))
+    z_min = float(mm_from_m(-spec.mirror.glass_height_m / 2))
+    z_max = -z_min
+    t_glass = float(mm_from_m(spec.mirror.glass_thickness_m))
+    hw = float(mm_from_m(lidar.housing_half_width_m))
+    sph = float(mm_from_m(lidar.scan_plane_height_m))
+    z_base = -sph                       # top of the base plate = lidar housing base
+    z_plate = z_base - P.base_thickness_mm
+    r_boss = P.hinge_boss_radius_mm
+    r_pin = P.hinge_bore_mm / 2
+    z_bot = hinge_z - r_boss            # carrier bottom
+    if hinge_z + r_boss > -P.beam_band_mm:
+        raise ParameterError("cad.hinge_boss_radius_mm", P.hinge_boss_radius_mm,
+                             f"< |mirror.hinge_z| - beam_band_mm = {-hinge_z - P.beam_band_mm:g} "
+                             "(the lifted carrier must stay below the beams)")
+    if z_bot - z_base < P.clearance_mm:
+        raise CadBuildError(f"the hinge tube (bottom at {z_bot:.1f} mm) does not clear the base "
+                            f"plate (top at {z_base:.1f} mm): lower mirror.hinge_z_m less or use a "
+                            "smaller cad.hinge_boss_radius_mm")
+    s_lidar = P.lidar_hole_spacing_mm
+    need = s_lidar / 2 + P.clearance_dia_mm(P.lidar_screw) / 2 + P.min_wall_mm
+    if need > hw:
+        raise ParameterError("cad.lidar_hole_spacing_mm", s_lidar,
+                             f"<= {2 * (hw - P.clearance_dia_mm(P.lidar_screw) / 2 - P.min_wall_mm):.3g} "
+                             f"mm (holes under the {lidar.name} housing)")
+
+    parts: list[Part] = []
+    extras: dict[str, Any] = {"z_base_mm": z_base, "z_plate_mm": z_plate, "hinge_z_mm": hinge_z}
+
+    # -- glass (reference) ---------------------------------------------------------
+    for m in design.mirrors:
+        c4 = mm_from_m(m.patch.corners())
+        n = np.asarray(m.patch.normal_)
+        a, b = c4[0], c4[1]                      # (s_min, z_min), (s_max, z_min)
+        poly = np.array([a, b, b - t_glass * n, a - t_glass * n])[:, :2]
+        g = _prism(cq, poly, c4[0, 2], c4[2, 2])
+        parts.append(Part(f"glass_{m.name}", "reference", _single_solid(cq, g, m.name),
+                          side=m.side, color=(0.55, 0.8, 0.95, 0.6),
+                          description=f"mirror glass {m.name}: front face = solved patch"))
+
+    # -- carriers ------------------------------------------------------------------
+    neck = P.clearance_mm + 3.0                  # room for the horn screws behind the flange
+    base_extra: list[Any] = []
+    base_cuts: list[Any] = []
+    hull_pts: list[np.ndarray] = []
+    for side, lay in layouts.items():
+        ax = lay.axis
+        solids = [_prism(cq, lay.skirt_polygon, z_bot, z_min)]
+        solids += [_prism(cq, poly, z_bot, z_max) for poly in lay.back_polygons]
+        u_fl0 = lay.u_lo - neck - P.flange_thickness_mm
+        solids.append(_axis_cyl(cq, ax, r_boss, u_fl0, lay.u_hi))
+        solids.append(_axis_cyl(cq, ax, P.horn_radius_mm, u_fl0, u_fl0 + P.flange_thickness_mm))
+        body = _fuse(solids)
+        cuts = [_axis_cyl(cq, ax, r_pin, u_fl0 - 1.0, lay.u_hi + 1.0)]
+        r_h = P.clearance_dia_mm(P.horn_screw) / 2
+        for k in range(4):
+            ang = np.pi / 4 + k * np.pi / 2
+            cuts.append(_axis_cyl(cq, ax, r_h, u_fl0 - 1.0, u_fl0 + P.flange_thickness_mm + 1.0,
+                                  offset_e=P.horn_bolt_circle_mm / 2 * np.cos(ang),
+                                  offset_z=P.horn_bolt_circle_mm / 2 * np.sin(ang)))
+        body = body.cut(*cuts).clean()
+        parts.append(Part(f"carrier_{side}", "printable", _single_solid(cq, body, f"carrier_{side}"),
+                          side=side, color=(0.95, 0.55, 0.2, 1.0),
+                          description=f"{side} mirror carrier ({', '.join(lay.mirror_names)}), "
+                                      "turns about its hinge axis"))
+
+        # -- servo (reference) and its cradle / the front pillar (base) -------------
+        hb1 = u_fl0 - P.horn_thickness_mm        # servo body face at the horn side
+        hb0 = hb1 - P.servo_depth_mm
+        off, L, W, sc = P.servo_shaft_offset_mm, P.servo_length_mm, P.servo_width_mm, P.servo_clearance_mm
+        servo = _fuse([_axis_box(cq, ax, (hb0, hb1), (-off, L - off), (hinge_z - W / 2, hinge_z + W / 2)),
+                       _axis_cyl(cq, ax, P.horn_radius_mm, hb1, u_fl0)])
+        parts.append(Part(f"servo_{side}", "reference", _single_solid(cq, servo, f"servo_{side}"),
+                          color=(0.2, 0.2, 0.2, 1.0),
+                          description="lift servo envelope (body + horn), XL430-size by default"))
+        wl = P.wall_mm
+        pocket_bot = hinge_z - W / 2 - sc
+        if pocket_bot - z_plate < P.min_wall_mm:
+            raise CadBuildError(
+                f"the {side} servo does not fit between the base plate and the hinge axis "
+                f"(cradle floor {pocket_bot - z_plate:.2f} mm < min wall {P.min_wall_mm} mm); "
+                "raise mirror.hinge_z_m or use a smaller servo")
+        cu = (hb0 - sc - wl, hb1)
+        ce = (-off - sc - wl, L - off + sc + wl)
+        cradle = _axis_box(cq, ax, cu, ce, (z_plate, max(hinge_z, pocket_bot + P.min_wall_mm)))
+        base_extra.append(cradle)
+        base_cuts.append(_axis_box(cq, ax, (hb0 - sc, hb1 + 1.0), (-off - sc, L - off + sc),
+                                   (pocket_bot, hinge_z + 100.0)))
+        a0, c, wv = (np.asarray(ax.point_mm), np.asarray(ax.direction), np.asarray(ax.outward))
+        for frac in (0.3, 0.7):
+            ee = ce[0] + frac * (ce[1] - ce[0])
+            xy = a0[:2] + (hb0 + hb1) / 2 * c[:2] + ee * wv[:2]
+            base_cuts.append(_vcyl(cq, xy, P.clearance_dia_mm(P.servo_screw) / 2, z_plate - 1,
+                                   pocket_bot + 1))
+        pu = (lay.u_hi + P.clearance_mm, lay.u_hi + P.clearance_mm + P.pillar_thickness_mm)
+        base_extra.append(_axis_box(cq, ax, pu, (-r_boss, r_boss), (z_plate, hinge_z)))
+        base_extra.append(_axis_cyl(cq, ax, r_boss, pu[0], pu[1]))
+        base_extra.append(_axis_box(cq, ax, pu, (-(r_boss + P.clearance_mm + wl), r_boss),
+                                    (z_plate, z_base)))
+        base_cuts.append(_axis_cyl(cq, ax, r_pin, pu[0] - 1.0, pu[1] + 1.0))
+        e_in = -(r_boss + P.clearance_mm)
+        for uu in (cu[0], pu[1]):
+            hull_pts.append(a0[:2] + uu * c[:2] + e_in * wv[:2])
+        extras[f"pillar_{side}_u_mm"] = pu
+        extras[f"cradle_{side}_u_mm"] = cu
+
+    # -- base (printable) ------------------------------------------------------------
+    from scipy.spatial import ConvexHull
+
+    h = hw + P.base_margin_mm
+    sq = np.array([[h, h], [-h, h], [-h, -h], [h, -h]])
+    allp = np.vstack([sq, *hull_pts]) if hull_pts else sq
+    plate_poly = allp[ConvexHull(allp).vertices]
+    base = _fuse([_prism(cq, plate_poly, z_plate, z_base), *base_extra])
+    r_l = P.clearance_dia_mm(P.lidar_screw) / 2
+    r_b = P.clearance_dia_mm(P.base_screw) / 2
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            base_cuts.append(_vcyl(cq, (sx * s_lidar / 2, sy * s_lidar / 2), r_l, z_plate - 1, z_base + 1))
+            hb = hw + P.base_margin_mm / 2
+            base_cuts.append(_vcyl(cq, (sx * hb, sy * hb), r_b, z_plate - 1, z_base + 1))
+    base = base.cut(*base_cuts).clean()
+    parts.insert(0, Part("base", "printable", _single_solid(cq, base, "base"),
+                         color=(0.3, 0.45, 0.85, 1.0),
+                         description="base: lidar seat, hinge pillars, servo cradles"))
+
+    # -- lidar envelope (reference) ----------------------------------------------------
+    top = float(mm_from_m(lidar.housing_height_m)) - sph
+    body_top = -P.beam_band_mm - 2.0
+    lid = _fuse([_prism(cq, sq * hw / h, z_base, body_top),
+                 _vcyl(cq, (0, 0), float(mm_from_m(lidar.head_radius_m)), body_top, top)])
+    parts.append(Part("lidar", "reference", _single_solid(cq, lid, "lidar"),
+                      color=(0.1, 0.1, 0.1, 1.0),
+                      description=f"{lidar.name} envelope (square body, round optical head)"))
+    return MountModel(design=design, params=P, layouts=layouts, parts=tuple(parts), extras=extras)
+
+
+def part_shapes(model: MountModel, state: str) -> dict[str, Any]:
+    """Every part's shape in ``state`` (carriers, their glass: rotated about the hinge)."""
+    if state not in STATES:
+        raise ParameterError("state", state, " or ".join(STATES))
+    out = {}
+    for p in model.parts:
+        if state == "lifted" and p.side is not None:
+            ax = model.layouts[p.side].axis
+            a0 = np.asarray(ax.point_mm)
+            a1 = a0 + np.asarray(ax.direction)
+            out[p.name] = p.shape.rotate(tuple(map(float, a0)), tuple(map(float, a1)),
+                                         float(np.degrees(ax.lift_rad)))
+        else:
+            out[p.name] = p.shape
+    return out
+
+
+def build_assembly(model: MountModel, state: str) -> cq.Assembly:
+    """A named, coloured :class:`cadquery.Assembly` of all parts in ``state``."""
+    cq = _cq()
+    shapes = part_shapes(model, state)
+    assy = cq.Assembly(name=f"{model.design.spec.name}_{state}")
+    for p in model.parts:
+        assy.add(shapes[p.name], name=p.name, color=cq.Color(*p.color))
+    return assy

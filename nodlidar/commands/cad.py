@@ -1,0 +1,44 @@
+"""``nodlidar cad DESIGN.toml``: export the mirror mounts (STEP, STL, preview, manifest)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "cad", help="export the mirror mounts of a design as STEP/STL + manifest",
+        description="Solve a design file and write its mounts (deployed and lifted) to "
+                    "OUT/<design name>/: assembly STEPs, printable part STEP+STL, preview, "
+                    "manifest.json.")
+    p.add_argument("design", help="design TOML file (design/*.toml)")
+    p.add_argument("--out", default="cad_out", metavar="DIR",
+                   help="output root folder (default: cad_out)")
+    p.add_argument("--state", default="both", choices=("both", "deployed", "lifted"),
+                   help="assembly state(s) to write (default: both)")
+    p.add_argument("--no-preview", action="store_true", help="skip the preview image")
+    p.add_argument("--json", action="store_true", help="print the manifest as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..cad.params import mount_params_from_spec
+    from ..solver import solve
+    from ..spec import load_design
+
+    spec = load_design(args.design)
+    params = mount_params_from_spec(spec)        # fail fast on bad [cad] values
+    design = solve(spec)
+    from ..cad.export import export_cad          # cadquery only from here on
+
+    manifest = export_cad(design, args.out, state=args.state, params=params,
+                          preview=not args.no_preview)
+    if args.json:
+        print(json.dumps(manifest.to_dict(), indent=2))
+        return 0
+    print(manifest.folder)
+    for part in manifest.parts:
+        files = ", ".join(part.get("files", [])) or "(reference, in the assemblies)"
+        print(f"  {part['name']:<12} {part['kind']:<10} {part['volume_mm3'] / 1000:8.1f} cm3  {files}")
+    return 0
