@@ -256,6 +256,8 @@ class InterleaveResult:
     window_rad : (2,) float
         Bearing limits of the front (direct) window, half a step beyond its edge beams.
     resolution_rad : float
+    hit : (n, 3) float
+        Where each beam leaves its mirror (the origin for direct beams) [m].
     """
 
     design_name: str
@@ -267,6 +269,7 @@ class InterleaveResult:
     bearing: np.ndarray
     window_rad: np.ndarray
     resolution_rad: float
+    hit: np.ndarray | None = None
 
     def gaps(self) -> list[np.ndarray]:
         """Per range, the sorted angular gaps between neighbouring beams inside the window."""
@@ -296,7 +299,8 @@ def interleave(design: Design, ranges_m=(0.4, 1.0, 2.0, 6.0),
     return InterleaveResult(design_name=design.spec.name, ranges_m=ranges, steps=steps,
                             mirror_index=bm.mirror_index(steps),
                             mirror_names=tuple(m.name for m in design.mirrors), points=pts,
-                            bearing=bearing_of(pts), window_rad=window, resolution_rad=res)
+                            bearing=bearing_of(pts), window_rad=window, resolution_rad=res,
+                            hit=start)
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,0 +1,66 @@
+"""``nodlidar report DESIGN``: write the design report (HTML with embedded figures, Markdown).
+
+Solves the design, verifies it by ray trace, runs the drift, interleave, tolerance Monte
+Carlo and sensitivity analyses, compares with the paper's published numbers and with the
+other placement method, and writes ``report.html``, ``report.md`` (figures in
+``figures/``), ``report.json`` and the resolved design TOML to ``--out``.
+"""
+
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    p = sub.add_parser("report", help="write the design report (HTML + Markdown)",
+                       description=__doc__)
+    p.add_argument("design", help="design TOML file, e.g. design/urg04lx-paper.toml")
+    p.add_argument("--out", help="output directory (default out/report/<design name>/)")
+    p.add_argument("--samples", type=int, help="Monte Carlo samples (default: [tolerance])")
+    p.add_argument("--seed", type=int, help="Monte Carlo seed (default: [tolerance])")
+    p.add_argument("--workers", type=int,
+                   help="0: in process; N: a local Dask cluster of N worker processes "
+                        "(default: in process up to 20000 samples)")
+    p.add_argument("--scheduler", metavar="ADDR", help="run the Monte Carlo on this Dask scheduler")
+    p.set_defaults(func=run)
+
+
+def tqdm_progress(desc: str):
+    """A ``progress(done, total)`` callback drawing a tqdm bar (CLI only), and its closer."""
+    from tqdm import tqdm
+
+    bar = None
+
+    def progress(done: int, total: int) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=total, desc=desc, unit="sample", disable=None)
+        bar.update(done - bar.n)
+
+    def close() -> None:
+        if bar is not None:
+            bar.close()
+
+    return progress, close
+
+
+def run(args) -> int:
+    from ..analysis.report import compute_report, default_out_dir, write_report
+    from ..errors import ParameterError
+    from ..spec import load_design
+
+    if args.samples is not None and args.samples < 1:
+        raise ParameterError("--samples", args.samples, "an integer >= 1")
+    if args.workers is not None and args.workers < 0:
+        raise ParameterError("--workers", args.workers, "an integer >= 0")
+    spec = load_design(args.design)
+    progress, close = tqdm_progress("Monte Carlo")
+    try:
+        data = compute_report(spec, samples=args.samples, seed=args.seed, workers=args.workers,
+                              scheduler=args.scheduler, progress=progress)
+    finally:
+        close()
+    paths = write_report(data, args.out or default_out_dir(spec))
+    print(f"wrote {paths.html}")
+    print(f"wrote {paths.markdown} ({len(paths.figures)} figures in {paths.figures[0].parent})")
+    print(f"wrote {paths.json}")
+    print(f"wrote {paths.toml}")
+    return 0
