@@ -99,10 +99,10 @@ def _jsonable(x: Any) -> Any:
 def _render_preview(meshes: dict[str, dict[str, Any]], colors: dict[str, tuple], path: Path,
                     title: str) -> None:
     """Render both states' triangles with matplotlib (Agg) into ``path``."""
-    import matplotlib
+    import matplotlib  # noqa: TID251 (lazy, inside the preview renderer)
 
     matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # noqa: TID251 (lazy)
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     states = list(meshes)
@@ -156,7 +156,7 @@ def export_cad(design: Any, out_dir: str | Path = "cad_out", *, state: str = "bo
     -------
     Manifest
     """
-    import cadquery as cq
+    import cadquery as cq  # noqa: TID251 (lazy: only when CAD is asked for)
     import trimesh
 
     from ..errors import ParameterError
@@ -167,11 +167,11 @@ def export_cad(design: Any, out_dir: str | Path = "cad_out", *, state: str = "bo
     report = progress or (lambda stage, frac: None)
     P = params or mount_params_from_spec(design.spec)
     folder = Path(out_dir) / design.spec.name
-    (folder / "parts").mkdir(parents=True, exist_ok=True)
     files: list[str] = []
 
     report("build", 0.0)
-    model: MountModel = build_mounts(design, P)
+    model: MountModel = build_mounts(design, P)    # raises before anything is written
+    (folder / "parts").mkdir(parents=True, exist_ok=True)
     tol, atol = P.stl_tolerance_mm, P.stl_angular_tolerance_rad
     parts_info: list[dict[str, Any]] = []
     n_steps = len(model.parts) + 2 * len(states) + 2

@@ -44,11 +44,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import InfeasibleDesignError, NodlidarError, ParameterError
+from ..errors import NodlidarError, ParameterError
 from .params import MountParams
 
 if TYPE_CHECKING:  # pragma: no cover
-    import cadquery as cq
+    import cadquery as cq  # noqa: TID251 (typing only)
 
     from ..solver import Design
 
@@ -307,7 +307,7 @@ class MountModel:
 
 def _cq():
     try:
-        import cadquery as cq
+        import cadquery as cq  # noqa: TID251 (lazy: the one place mounts import it)
     except ImportError as exc:  # pragma: no cover - cadquery is a dependency
         raise CadBuildError(f"CAD export needs cadquery ({exc})") from None
     return cq

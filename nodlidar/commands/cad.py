@@ -30,7 +30,8 @@ def run(args: argparse.Namespace) -> int:
     spec = load_design(args.design)
     params = mount_params_from_spec(spec)        # fail fast on bad [cad] values
     design = solve(spec)
-    from ..cad.export import export_cad          # cadquery only from here on
+    # cadquery only from here on
+    from ..cad.export import export_cad
 
     manifest = export_cad(design, args.out, state=args.state, params=params,
                           preview=not args.no_preview)

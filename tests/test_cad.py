@@ -1,0 +1,469 @@
+"""CAD export of the mirror mounts, validated against the solved design (issue 4).
+
+The paper build is exported once per session (module fixture); every check reads the
+exported files back (STEP through cadquery, STL through trimesh) rather than trusting the
+in-memory shapes.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.cad
+
+cq = pytest.importorskip("cadquery")
+trimesh = pytest.importorskip("trimesh")
+
+from nodlidar.cad.params import MountParams, mount_params_from_dict  # noqa: E402
+from nodlidar.errors import ParameterError  # noqa: E402
+from nodlidar.solver import solve  # noqa: E402
+from nodlidar.spec import load_design  # noqa: E402
+from nodlidar.verify import trace_beams  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = ROOT / "design" / "urg04lx-paper.toml"
+
+# Tolerances of the issue: mirror faces where the solver put them.
+POS_TOL_MM = 0.01
+ANG_TOL_DEG = 0.01
+# Pairwise B-rep intersection volume counted as "no interference": touching faces
+# (glass on its datum) give exactly 0; 1e-6 mm^3 is far below any real overlap.
+VOL_TOL_MM3 = 1e-6
+
+
+# ---------------------------------------------------------------------------------------
+# fixtures
+
+
+@pytest.fixture(scope="module")
+def paper_design():
+    return solve(load_design(PAPER))
+
+
+@pytest.fixture(scope="module")
+def paper_export(paper_design, tmp_path_factory):
+    from nodlidar.cad.export import export_cad
+
+    stages = []
+    out = tmp_path_factory.mktemp("cad_out")
+    manifest = export_cad(paper_design, out, progress=lambda s, f: stages.append((s, f)))
+    return manifest, stages
+
+
+@pytest.fixture(scope="module")
+def meshes(paper_export):
+    manifest, _ = paper_export
+    out = {}
+    for st in manifest.states:
+        out[st] = {p["name"]: trimesh.load(manifest.file(f"meshes/{st}/{p['name']}.stl"))
+                   for p in manifest.parts}
+    return out
+
+
+def _imported_solids(path: Path):
+    return cq.importers.importStep(str(path)).val().Solids()
+
+
+# ---------------------------------------------------------------------------------------
+# files and manifest
+
+
+def test_files_and_manifest(paper_export, paper_design):
+    manifest, stages = paper_export
+    folder = manifest.folder
+    assert folder.name == paper_design.spec.name
+    for rel in manifest.files:
+        assert (folder / rel).is_file() and (folder / rel).stat().st_size > 0, rel
+    assert {"assembly_deployed.step", "assembly_lifted.step", "preview.png",
+            "manifest.json"} <= set(manifest.files)
+    assert set(manifest.printable_parts()) == {"base", "carrier_L", "carrier_R"}
+    for name in manifest.printable_parts():
+        assert f"parts/{name}.step" in manifest.files and f"parts/{name}.stl" in manifest.files
+    d = json.loads(manifest.path.read_text())
+    assert d["parameters"]["cad"] == MountParams().to_dict()
+    assert d["parameters"]["design"]["layout"]["design_distance_m"] == 2.0
+    assert set(d["mirror_faces"]) == {"L1", "L2", "R1", "R2"}
+    for pose in d["mirror_faces"].values():
+        assert set(pose) == {"deployed", "lifted"}
+    assert stages[-1] == ("done", 1.0)
+    fr = [f for _, f in stages]
+    assert fr == sorted(fr)
+    from PIL import Image  # matplotlib dependency
+
+    with Image.open(folder / "preview.png") as im:
+        assert im.size[0] > 600 and im.size[1] > 300
+
+
+def test_import_nodlidar_stays_light():
+    code = ("import sys, nodlidar, nodlidar.cad, nodlidar.cad.params, nodlidar.cli;"
+            "nodlidar.cli.build_parser();"
+            "print('cadquery' in sys.modules, 'matplotlib' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["False", "False"]
+
+
+# ---------------------------------------------------------------------------------------
+# mirror faces in the re-imported STEP
+
+
+def _find_face(solids, normal, origin_mm):
+    """Planar faces whose plane is (normal, through origin) within the tolerances."""
+    found = []
+    for s in solids:
+        for f in s.Faces():
+            if f.geomType() != "PLANE":
+                continue
+            n = np.array(f.normalAt().toTuple())
+            ang = np.degrees(np.arccos(np.clip(n @ normal, -1, 1)))
+            if ang > ANG_TOL_DEG:
+                continue
+            c = np.array(f.Center().toTuple())
+            if abs((c - origin_mm) @ normal) < POS_TOL_MM:
+                found.append((f, ang))
+    return found
+
+
+@pytest.mark.parametrize("state", ["deployed", "lifted"])
+def test_step_mirror_faces_match_solver(paper_export, paper_design, state):
+    manifest, _ = paper_export
+    solids = _imported_solids(manifest.file(f"assembly_{state}.step"))
+    assert len(solids) == len(manifest.parts)
+    for m in paper_design.mirrors:
+        pose = manifest.mirror_faces[m.name][state]
+        if state == "deployed":
+            # the manifest pose is the solver's patch (independent numbers, mm)
+            np.testing.assert_allclose(pose["origin_mm"], m.patch.origin_ * 1000, atol=1e-9)
+            np.testing.assert_allclose(pose["normal"], m.patch.normal_, atol=1e-12)
+            corners = m.patch.corners() * 1000
+        else:
+            corners = np.array(pose["corners_mm"])
+        normal = np.array(pose["normal"])
+        found = _find_face(solids, normal, np.array(pose["origin_mm"]))
+        assert len(found) == 1, f"{m.name} {state}: {len(found)} candidate faces"
+        face, ang = found[0]
+        assert ang < ANG_TOL_DEG
+        verts = np.array([v.toTuple() for v in face.Vertices()])
+        assert len(verts) == 4
+        # every solved corner is a vertex of the face (0.01 mm) and vice versa
+        dist = np.linalg.norm(verts[:, None, :] - corners[None, :, :], axis=-1)
+        assert dist.min(axis=0).max() < POS_TOL_MM
+        assert dist.min(axis=1).max() < POS_TOL_MM
+        np.testing.assert_allclose(face.Area(), m.patch.length * m.patch.height * 1e6, rtol=1e-6)
+
+
+def test_lifted_pose_is_rotation_about_hinge(paper_export, paper_design):
+    """Lifted faces: turned by lift_angle, top away from the lidar, below the beams."""
+    manifest, _ = paper_export
+    lift = paper_design.spec.mirror.lift_angle_rad
+    for m in paper_design.mirrors:
+        dep, lif = (manifest.mirror_faces[m.name][s] for s in ("deployed", "lifted"))
+        F0 = np.array([dep["normal"], dep["along"], dep["up"]]).T
+        F1 = np.array([lif["normal"], lif["along"], lif["up"]]).T
+        R = F1 @ F0.T                       # the rigid rotation deployed -> lifted
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(np.arccos((np.trace(R) - 1) / 2), lift, atol=1e-9)
+        axis = np.array(manifest.hinge_axes[m.side]["direction"])
+        np.testing.assert_allclose(R @ axis, axis, atol=1e-12)   # about the hinge axis
+        # the hinge axis itself does not move: corners keep their distance to it
+        p0 = np.array(manifest.hinge_axes[m.side]["point_mm"])
+        for c0, c1 in zip(dep["corners_mm"], lif["corners_mm"], strict=True):
+            r0 = np.cross(np.array(c0) - p0, axis)
+            r1 = np.cross(np.array(c1) - p0, axis)
+            np.testing.assert_allclose(np.linalg.norm(r0), np.linalg.norm(r1), atol=1e-9)
+        up_lifted = np.array(lif["up"])
+        # the top swings away from the lidar (opposite to the deployed normal)
+        assert up_lifted @ np.array(dep["normal"]) < 0
+        assert np.max(np.array(lif["corners_mm"])[:, 2]) < -manifest.parameters["cad"]["beam_band_mm"]
+
+
+# ---------------------------------------------------------------------------------------
+# meshes and solids
+
+
+def test_stl_parts_are_closed_volumes(paper_export):
+    manifest, _ = paper_export
+    stls = [f for f in manifest.files if f.endswith(".stl")]
+    assert len(stls) >= 3
+    for rel in stls:
+        mesh = trimesh.load(manifest.file(rel))
+        assert mesh.is_watertight, rel
+        assert mesh.is_winding_consistent, rel
+        assert mesh.is_volume and mesh.volume > 0, rel
+
+
+def test_printable_step_and_stl_agree(paper_export):
+    """STEP round trip (one valid solid) and STL volume/extents against the B-rep."""
+    manifest, _ = paper_export
+    tol = manifest.parameters["cad"]["stl_tolerance_mm"]
+    for name in manifest.printable_parts():
+        solids = _imported_solids(manifest.file(f"parts/{name}.step"))
+        assert len(solids) == 1 and solids[0].isValid()
+        vol = solids[0].Volume()
+        info = next(p for p in manifest.parts if p["name"] == name)
+        np.testing.assert_allclose(vol, info["volume_mm3"], rtol=1e-6)
+        mesh = trimesh.load(manifest.file(f"parts/{name}.stl"))
+        # chordal deflection tol on curved surfaces only: well under 1 % of the volume
+        np.testing.assert_allclose(mesh.volume, vol, rtol=1e-2)
+        np.testing.assert_allclose(mesh.bounds, np.array(info["bbox_mm"]), atol=10 * tol + 1e-3)
+
+
+@pytest.mark.parametrize("state", ["deployed", "lifted"])
+def test_no_interference(paper_export, state):
+    manifest, _ = paper_export
+    solids = _imported_solids(manifest.file(f"assembly_{state}.step"))
+    for i in range(len(solids)):
+        for j in range(i + 1, len(solids)):
+            v = solids[i].intersect(solids[j]).Volume()
+            assert v < VOL_TOL_MM3, (state, i, j, v)
+
+
+# ---------------------------------------------------------------------------------------
+# beams against the exported meshes (embree ray casting)
+
+
+def _scene(meshes_by_name, names):
+    """One mesh of the named parts + the part name of every triangle."""
+    parts = [meshes_by_name[n] for n in names]
+    scene = trimesh.util.concatenate(parts)
+    owner = np.concatenate([[n] * len(m.faces) for n, m in zip(names, parts, strict=True)])
+    return scene, owner
+
+
+def _first_hits(scene, origins, dirs):
+    """Distance to the first triangle along each ray (inf if none) and its index."""
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    ri = RayMeshIntersector(scene)
+    loc, idx_ray, idx_tri = ri.intersects_location(origins, dirs, multiple_hits=False)
+    dist = np.full(len(origins), np.inf)
+    tri = np.full(len(origins), -1)
+    dist[idx_ray] = np.linalg.norm(loc - origins[idx_ray], axis=1)
+    tri[idx_ray] = idx_tri
+    return dist, tri
+
+
+def _beam_heights(design, params):
+    band = params["beam_band_mm"]
+    h = design.spec.mirror.glass_height_m * 1000 / 2
+    return [0.0, band, -band], [h - 0.5, -(h - 0.5)]
+
+
+def test_beams_clear_mounts_deployed(paper_design, meshes, paper_export):
+    """Direct beams and mirror paths (to the lidar's max range) touch no mount solid.
+
+    Beams are cast at the scan plane, at +-beam_band (divergence) and, for mirror beams,
+    0.5 mm inside the glass's top and bottom edges.
+    """
+    manifest, _ = paper_export
+    design = paper_design
+    lidar = design.lidar
+    rmax = lidar.range_max_m * 1000
+    th = lidar.bearing_from_step(lidar.steps)
+    dirs = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
+    hit, t, out, blocker = trace_beams(design.patches(), dirs, lidar.range_max_m,
+                                       lidar.housing_radius_m)
+    assert np.all(blocker == -1)
+    np.testing.assert_array_equal(hit, design.mirror_of_step)
+    m = meshes["deployed"]
+    names = [n for n in m if n != "lidar"]
+    scene, owner = _scene(m, names)
+    heights, glass_heights = _beam_heights(design, manifest.parameters["cad"])
+    direct = hit == -1
+    mirrored = ~direct
+    n_checked = 0
+    for zh in heights + glass_heights:
+        o = np.zeros((len(dirs), 3))
+        o[:, 2] = zh
+        d_in, tri_in = _first_hits(scene, o, dirs)
+        if zh in heights:
+            # direct beams: nothing at all (mounts or glass) out to the max range
+            assert np.all(~np.isfinite(d_in[direct]) | (d_in[direct] > rmax)), zh
+            n_checked += int(direct.sum())
+        # mirror beams: the first thing they meet is their own glass, at the solved range
+        mi = np.nonzero(mirrored)[0]
+        exp = np.array([f"glass_{design.mirrors[k].name}" for k in hit[mi]])
+        assert np.all(owner[tri_in[mi]] == exp), zh
+        np.testing.assert_allclose(d_in[mi], t[mi] * 1000, atol=1e-3)  # float32 embree
+        # reflected paths: from the hit point to the max range, nothing in the way
+        start = o[mi] + dirs[mi] * (t[mi] * 1000)[:, None] + out[mi] * 1e-3
+        d_out, tri_out = _first_hits(scene, start, out[mi])
+        left = rmax - t[mi] * 1000
+        blocked = np.isfinite(d_out) & (d_out < left)
+        assert not blocked.any(), (zh, set(owner[tri_out[blocked]]))
+        n_checked += 2 * len(mi)
+    assert n_checked > 4 * lidar.n_steps
+
+
+def test_ray_caster_sees_the_mounts(paper_design, meshes):
+    """Negative control: beams cast below the glass do hit the carrier skirt."""
+    design = paper_design
+    lidar = design.lidar
+    m = meshes["deployed"]
+    names = [n for n in m if n != "lidar"]
+    scene, owner = _scene(m, names)
+    z_below = -design.spec.mirror.glass_height_m * 1000 / 2 - 2.0
+    for mir in design.mirrors:
+        th = lidar.bearing_from_step(mir.steps)
+        dirs = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
+        o = np.zeros_like(dirs)
+        o[:, 2] = z_below
+        d, tri = _first_hits(scene, o, dirs)
+        assert np.isfinite(d).all()
+        assert set(owner[tri]) == {f"carrier_{mir.side}"}
+
+
+def test_lifted_state_touches_no_beam(paper_design, meshes):
+    design = paper_design
+    lidar = design.lidar
+    th = lidar.bearing_from_step(lidar.steps)
+    dirs = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
+    m = meshes["lifted"]
+    names = [n for n in m if n != "lidar"]
+    scene, owner = _scene(m, names)
+    band = MountParams().beam_band_mm
+    for zh in (0.0, band, -band):
+        o = np.zeros((len(dirs), 3))
+        o[:, 2] = zh
+        d, tri = _first_hits(scene, o, dirs)
+        assert not np.isfinite(d).any(), (zh, set(owner[tri[np.isfinite(d)]]))
+    # and the runtime model agrees: lifted -> every beam direct
+    bm = design.beam_model(mirrors_deployed=False)
+    assert np.all(bm.mirror_of_step == -1)
+
+
+# ---------------------------------------------------------------------------------------
+# printability
+
+
+def _thickness_samples(mesh, n, rng):
+    """Wall thickness along the inward normal at ``n`` random surface points [mm]."""
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    pts, fi = trimesh.sample.sample_surface(mesh, n, seed=rng)
+    nrm = mesh.face_normals[fi]
+    ri = RayMeshIntersector(mesh)
+    start = pts - nrm * 1e-3
+    loc, ir, _ = ri.intersects_location(start, -nrm, multiple_hits=False)
+    th = np.full(n, np.inf)
+    th[ir] = np.linalg.norm(loc - start[ir], axis=1) + 1e-3
+    return th, pts
+
+
+def test_min_wall_thickness(paper_export):
+    """Every printable wall is at least min_wall_mm: by construction and measured.
+
+    The measurement casts a ray along the inward normal at 20 000 random surface points
+    of each printable STL and takes the distance to where it leaves the material (the
+    local wall). The thinnest designed wall of the defaults is the horn flange rim around
+    its screw holes (11 - 8 - 1.2 = 1.8 mm), so the minimum must sit near that.
+    """
+    manifest, _ = paper_export
+    cad = manifest.parameters["cad"]
+    mw = cad["min_wall_mm"]
+    for key in ("wall_mm", "base_thickness_mm", "flange_thickness_mm", "pillar_thickness_mm"):
+        assert cad[key] >= mw, key
+    rng = np.random.default_rng(4)
+    overall = np.inf
+    for name in manifest.printable_parts():
+        mesh = trimesh.load(manifest.file(f"parts/{name}.stl"))
+        th, _ = _thickness_samples(mesh, 20000, rng)
+        assert np.isfinite(th).all(), name          # every inward ray leaves a closed solid
+        # the chordal deflection of the STL can thin a curved wall by ~2 * tolerance
+        assert th.min() >= mw - 2 * cad["stl_tolerance_mm"], (name, np.sort(th)[:5])
+        overall = min(overall, th.min())
+    flange_rim = (cad["horn_radius_mm"] - cad["horn_bolt_circle_mm"] / 2
+                  - MountParams.clearance_dia_mm(cad["horn_screw"]) / 2)
+    assert flange_rim - 0.1 <= overall <= cad["wall_mm"] + 0.01
+
+
+# ---------------------------------------------------------------------------------------
+# other designs, parameters, CLI
+
+
+def test_other_designs_export(tmp_path):
+    from nodlidar.cad.export import export_cad
+
+    spec = load_design(PAPER)
+    far = spec.replace(**{"layout.design_distance_m": 3.0})
+    # The paper's split (3 windows, 2 mirrors a side) is infeasible for the UTM-30LX's
+    # 270 deg field (a 90 deg side window would need a 180 deg turn); 5 windows with 4
+    # mirrors a side and a 30 mm standoff is a feasible variant.
+    utm = spec.replace(lidar="UTM-30LX", **{"layout.windows": 5, "layout.mirrors_per_side": 4,
+                                            "placement.standoff_m": (0.03,), "name": "utm30"})
+    for s in (far, utm):
+        design = solve(s)
+        man = export_cad(design, tmp_path / s.lidar, preview=False)
+        assert len(man.mirror_faces) == len(design.mirrors)
+        solids = _imported_solids(man.file("assembly_deployed.step"))
+        for m in design.mirrors:
+            pose = man.mirror_faces[m.name]["deployed"]
+            assert len(_find_face(solids, np.array(pose["normal"]),
+                                  np.array(pose["origin_mm"]))) == 1
+        for name in man.printable_parts():
+            mesh = trimesh.load(man.file(f"parts/{name}.stl"))
+            assert mesh.is_watertight and mesh.is_volume
+
+
+def test_params_defaults_and_validation():
+    assert mount_params_from_dict(None) == MountParams()
+    assert mount_params_from_dict({"wall_mm": 4}).wall_mm == 4.0
+    with pytest.raises(ParameterError, match="cad.wall_mm"):
+        mount_params_from_dict({"wall_mm": 0.5})           # below min wall
+    with pytest.raises(ParameterError, match="cad.hinge_pin"):
+        mount_params_from_dict({"hinge_pin": "M7"})
+    with pytest.raises(ParameterError, match="cad.wal_mm"):
+        mount_params_from_dict({"wal_mm": 3})              # typo: unknown key
+    with pytest.raises(ParameterError, match="cad.clearance_mm"):
+        mount_params_from_dict({"clearance_mm": float("nan")})
+    with pytest.raises(ParameterError):
+        mount_params_from_dict({"wall_mm": True})
+    with pytest.raises(ParameterError, match="cad.horn_radius_mm"):
+        mount_params_from_dict({"min_wall_mm": 2.0})       # flange rim would be 1.8 mm
+    with pytest.raises(ParameterError, match="cad.stl_tolerance_mm"):
+        mount_params_from_dict({"stl_tolerance_mm": 1.0})
+
+
+def test_cli_writes_files(tmp_path, capsys):
+    from nodlidar.cli import main
+
+    rc = main(["cad", str(PAPER), "--out", str(tmp_path), "--no-preview"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    folder = tmp_path / "urg04lx-paper"
+    assert str(folder) in out and "carrier_L" in out
+    assert (folder / "assembly_deployed.step").is_file()
+    assert (folder / "parts" / "base.stl").is_file()
+    assert json.loads((folder / "manifest.json").read_text())["design"] == "urg04lx-paper"
+
+
+def test_cli_bad_cad_value_is_one_line(tmp_path, capsys):
+    from nodlidar.cli import main
+
+    text = PAPER.read_text() + "\n[cad]\nwall_mm = 0.4\n"
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text)
+    rc = main(["cad", str(bad), "--out", str(tmp_path / "o")])
+    assert rc == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "cad.wall_mm" in err and "0.4" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_param_that_does_not_fit_the_design(tmp_path, capsys):
+    """A [cad] value valid on its own but not for this lidar fails at build time, exit 2."""
+    from nodlidar.cli import main
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text(PAPER.read_text() + "\n[cad]\nlidar_hole_spacing_mm = 60.0\n")
+    rc = main(["cad", str(bad), "--out", str(tmp_path / "o")])
+    assert rc == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "cad.lidar_hole_spacing_mm" in err
+    assert not (tmp_path / "o").exists()
