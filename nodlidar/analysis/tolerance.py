@@ -62,6 +62,7 @@ from ..geometry import (
     Perturbation,
     arc_point,
     bearing_of,
+    ray_circle_exit,
     reflect,
     reflect_rays,
     rot_y,
@@ -434,11 +435,12 @@ def _trace_mirror(md: _MirrorData, dm: np.ndarray, dl: np.ndarray, ranges: np.nd
     s = np.sum(rel * along[:, None, :], -1)
     z = np.sum(rel * up[:, None, :], -1)
     on = (t > 0) & (s >= md.extent[0]) & (s <= md.extent[1]) & (z >= md.extent[2]) & (z <= md.extent[3])
-    b = hit.shape[1]
-    flat_hit, flat_out = hit.reshape(-1, 3), out.reshape(-1, 3)
-    P = np.stack([arc_point(flat_hit, flat_out, r).reshape(n, b, 3) for r in ranges], 2)
+    # where each reflected ray leaves the arc (cylinder) of each radius: arc_point's
+    # distance (ray_circle_exit) kept, as the measured path is t + that distance
+    t_arc = np.stack([ray_circle_exit(hit, out, r) for r in ranges], -1)          # (n, b, r)
+    P = hit[:, :, None, :] + t_arc[..., None] * out[:, :, None, :]
     # measured path length, projected with the nominal (runtime) model
-    r_meas = t[..., None] + np.linalg.norm(P - hit[:, :, None, :], axis=-1)       # (n, b, r)
+    r_meas = t[..., None] + t_arc                                                  # (n, b, r)
     Q = md.hit0[None, :, None, :] + md.out0[None, :, None, :] * (r_meas - md.t0[None, :, None])[..., None]
     bearing = bearing_of(P)
     berr = wrap_angle(bearing_of(Q) - bearing)
