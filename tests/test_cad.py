@@ -255,14 +255,12 @@ def _beam_heights(design, params):
     return [0.0, band, -band], [h - 0.5, -(h - 0.5)]
 
 
-def test_beams_clear_mounts_deployed(paper_design, meshes, paper_export):
+def _check_beams_deployed(design, m, band_mm):
     """Direct beams and mirror paths (to the lidar's max range) touch no mount solid.
 
-    Beams are cast at the scan plane, at +-beam_band (divergence) and, for mirror beams,
-    0.5 mm inside the glass's top and bottom edges.
+    Beams are cast at the scan plane, at +-band (divergence) and, for mirror beams,
+    0.5 mm inside the glass's top and bottom edges. Returns the number of paths checked.
     """
-    manifest, _ = paper_export
-    design = paper_design
     lidar = design.lidar
     rmax = lidar.range_max_m * 1000
     th = lidar.bearing_from_step(lidar.steps)
@@ -271,12 +269,12 @@ def test_beams_clear_mounts_deployed(paper_design, meshes, paper_export):
                                        lidar.housing_radius_m)
     assert np.all(blocker == -1)
     np.testing.assert_array_equal(hit, design.mirror_of_step)
-    m = meshes["deployed"]
     names = [n for n in m if n != "lidar"]
     scene, owner = _scene(m, names)
-    heights, glass_heights = _beam_heights(design, manifest.parameters["cad"])
+    h = design.spec.mirror.glass_height_m * 1000 / 2
+    heights, glass_heights = [0.0, band_mm, -band_mm], [h - 0.5, -(h - 0.5)]
     direct = hit == -1
-    mirrored = ~direct
+    mi = np.nonzero(~direct)[0]
     n_checked = 0
     for zh in heights + glass_heights:
         o = np.zeros((len(dirs), 3))
@@ -287,7 +285,6 @@ def test_beams_clear_mounts_deployed(paper_design, meshes, paper_export):
             assert np.all(~np.isfinite(d_in[direct]) | (d_in[direct] > rmax)), zh
             n_checked += int(direct.sum())
         # mirror beams: the first thing they meet is their own glass, at the solved range
-        mi = np.nonzero(mirrored)[0]
         exp = np.array([f"glass_{design.mirrors[k].name}" for k in hit[mi]])
         assert np.all(owner[tri_in[mi]] == exp), zh
         np.testing.assert_allclose(d_in[mi], t[mi] * 1000, atol=1e-3)  # float32 embree
@@ -298,7 +295,28 @@ def test_beams_clear_mounts_deployed(paper_design, meshes, paper_export):
         blocked = np.isfinite(d_out) & (d_out < left)
         assert not blocked.any(), (zh, set(owner[tri_out[blocked]]))
         n_checked += 2 * len(mi)
-    assert n_checked > 4 * lidar.n_steps
+    return n_checked
+
+
+def _check_lifted_clear(design, m, band_mm):
+    """In the lifted state no beam touches anything (mirrors or mounts)."""
+    lidar = design.lidar
+    th = lidar.bearing_from_step(lidar.steps)
+    dirs = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
+    names = [n for n in m if n != "lidar"]
+    scene, owner = _scene(m, names)
+    for zh in (0.0, band_mm, -band_mm):
+        o = np.zeros((len(dirs), 3))
+        o[:, 2] = zh
+        d, tri = _first_hits(scene, o, dirs)
+        assert not np.isfinite(d).any(), (zh, set(owner[tri[np.isfinite(d)]]))
+
+
+def test_beams_clear_mounts_deployed(paper_design, meshes, paper_export):
+    manifest, _ = paper_export
+    n = _check_beams_deployed(paper_design, meshes["deployed"],
+                              manifest.parameters["cad"]["beam_band_mm"])
+    assert n > 4 * paper_design.lidar.n_steps
 
 
 def test_ray_caster_sees_the_mounts(paper_design, meshes):
@@ -320,21 +338,9 @@ def test_ray_caster_sees_the_mounts(paper_design, meshes):
 
 
 def test_lifted_state_touches_no_beam(paper_design, meshes):
-    design = paper_design
-    lidar = design.lidar
-    th = lidar.bearing_from_step(lidar.steps)
-    dirs = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
-    m = meshes["lifted"]
-    names = [n for n in m if n != "lidar"]
-    scene, owner = _scene(m, names)
-    band = MountParams().beam_band_mm
-    for zh in (0.0, band, -band):
-        o = np.zeros((len(dirs), 3))
-        o[:, 2] = zh
-        d, tri = _first_hits(scene, o, dirs)
-        assert not np.isfinite(d).any(), (zh, set(owner[tri[np.isfinite(d)]]))
+    _check_lifted_clear(paper_design, meshes["lifted"], MountParams().beam_band_mm)
     # and the runtime model agrees: lifted -> every beam direct
-    bm = design.beam_model(mirrors_deployed=False)
+    bm = paper_design.beam_model(mirrors_deployed=False)
     assert np.all(bm.mirror_of_step == -1)
 
 
@@ -409,6 +415,16 @@ def test_other_designs_export(tmp_path):
         for name in man.printable_parts():
             mesh = trimesh.load(man.file(f"parts/{name}.stl"))
             assert mesh.is_watertight and mesh.is_volume
+        ms = {st: {p["name"]: trimesh.load(man.file(f"meshes/{st}/{p['name']}.stl"))
+                   for p in man.parts} for st in man.states}
+        band = man.parameters["cad"]["beam_band_mm"]
+        _check_beams_deployed(design, ms["deployed"], band)
+        _check_lifted_clear(design, ms["lifted"], band)
+        for st in man.states:
+            sol = _imported_solids(man.file(f"assembly_{st}.step"))
+            for a in range(len(sol)):
+                for b in range(a + 1, len(sol)):
+                    assert sol[a].intersect(sol[b]).Volume() < VOL_TOL_MM3, (s.name, st, a, b)
 
 
 def test_params_defaults_and_validation():
