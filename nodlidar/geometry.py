@@ -113,11 +113,11 @@ def ray_plane_distance(
     return np.where((np.abs(denom) > _EPS) & (t > 1e-12), t, np.inf)
 
 
-def ray_circle_exit(origins: np.ndarray, dirs: np.ndarray, radius: float) -> np.ndarray:
-    """Distance along each ray (in the xy plane) to where it leaves the circle |p| = radius.
+def _circle_roots(origins: np.ndarray, dirs: np.ndarray, radius: float):
+    """Entry/exit distances of rays (xy only) through the circle |p| = radius.
 
-    Only x and y are used, so for 3D rays this is the exit from the vertical cylinder.
-    origins, dirs : (n, 2|3). Returns (n,) float (nan if the ray never reaches it).
+    Returns ``(t0, t1, disc, c)``: the two roots (nan where the ray misses), the
+    discriminant, and ``|o|^2 - radius^2`` (negative when the ray starts inside).
     """
     o, d = origins[..., :2], dirs[..., :2]
     a = np.sum(d * d, -1)
@@ -125,8 +125,18 @@ def ray_circle_exit(origins: np.ndarray, dirs: np.ndarray, radius: float) -> np.
     c = np.sum(o * o, -1) - radius**2
     disc = b * b - 4 * a * c
     with np.errstate(invalid="ignore", divide="ignore"):
-        t = (-b + np.sqrt(disc)) / (2 * a)
-    return np.where((disc >= 0) & (t > 0), t, np.nan)
+        root = np.sqrt(disc)
+        return (-b - root) / (2 * a), (-b + root) / (2 * a), disc, c
+
+
+def ray_circle_exit(origins: np.ndarray, dirs: np.ndarray, radius: float) -> np.ndarray:
+    """Distance along each ray (in the xy plane) to where it leaves the circle |p| = radius.
+
+    Only x and y are used, so for 3D rays this is the exit from the vertical cylinder.
+    origins, dirs : (n, 2|3). Returns (n,) float (nan if the ray never reaches it).
+    """
+    _, t1, disc, _ = _circle_roots(origins, dirs, radius)
+    return np.where((disc >= 0) & (t1 > 0), t1, np.nan)
 
 
 def ray_cylinder_hit(
@@ -136,17 +146,9 @@ def ray_cylinder_hit(
 
     Used to check reflected beams against the lidar housing. Returns (n,) bool.
     """
-    o, d = origins[..., :2], dirs[..., :2]
-    a = np.sum(d * d, -1)
-    b = 2 * np.sum(o * d, -1)
-    c = np.sum(o * o, -1) - radius**2
-    disc = b * b - 4 * a * c
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t0 = (-b - np.sqrt(disc)) / (2 * a)
-        t1 = (-b + np.sqrt(disc)) / (2 * a)
-    inside_start = c < 0
+    t0, t1, disc, c = _circle_roots(origins, dirs, radius)
     enters = (disc > 0) & (t1 > 1e-9) & (t0 < t_max)
-    return np.where(inside_start, True, enters)
+    return np.where(c < 0, True, enters)
 
 
 @dataclass(frozen=True)
