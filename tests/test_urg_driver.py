@@ -273,6 +273,11 @@ def test_soak_10000_scans_memory_flat():
         assert rss[1] - rss[0] < 8 * 2**20, f"RSS grew {(rss[1] - rss[0]) / 2**20:.1f} MiB"
         st = drv.stats
         assert st.scans >= 10_000 and st.rejected_messages > 0
-        # every lost scan is explained by a rejected/bad message or an emulator skip
-        lost = st.rejected_messages + st.bad_scans + emu.stats.scans_skipped
-        assert abs(st.dropped_scans - lost) <= 0.02 * lost + 5
+        # The driver counts drops from timestamp gaps; check them against the device's own
+        # ground truth (scans it produced, sent or skipped, minus scans delivered). Rejected
+        # messages are not one-to-one with lost scans (a dropped LF merges two messages, an
+        # injected one splits a message), so they cannot serve as the reference.
+        produced = emu.stats.scans_sent + emu.stats.scans_skipped
+        lost = produced - st.scans
+        in_flight = 5  # scans the device may still emit after the driver sends QT
+        assert 0 <= lost - st.dropped_scans <= in_flight, (produced, st)
