@@ -1,12 +1,16 @@
 """``nodlidar demo``: the main job on the paper's build, with no hardware needed.
 
-Solves and verifies design/urg04lx-paper.toml and says where the outputs went. (The design
-report, CAD export and simulated scan join this job as their issues land.)
+1. solve and verify ``design/urg04lx-paper.toml`` (mirror table, paper comparison);
+2. write the design report (HTML + Markdown, drift/interleave/tolerance figures);
+3. export the CAD of the mirror mounts (STEP/STL/preview/manifest) into ``cad_out/``;
+
+and print where every output went.
 """
 
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 DEFAULT_DESIGN = "design/urg04lx-paper.toml"
@@ -18,30 +22,70 @@ def register(sub) -> None:
     p.add_argument("--design", default=DEFAULT_DESIGN, help=f"design file (default {DEFAULT_DESIGN})")
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     p.add_argument("--cad-out", default="cad_out", help="CAD output root (default cad_out)")
+    p.add_argument("--skip", action="append", default=[], choices=["report", "cad"],
+                   help="leave out a step (repeatable)")
     p.set_defaults(func=run)
 
 
-def _step(title: str) -> None:
-    print(f"\n== {title}", flush=True)
+class _Steps:
+    """Numbered step headers with the time each step took."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.t0 = None
+        self.outputs: list[tuple[str, Path]] = []
+
+    def start(self, title: str) -> None:
+        self.done()
+        self.n += 1
+        self.t0 = time.perf_counter()
+        print(f"\n== {self.n}. {title}", flush=True)
+
+    def done(self) -> None:
+        if self.t0 is not None:
+            print(f"   ({time.perf_counter() - self.t0:.1f} s)", flush=True)
+            self.t0 = None
+
+    def output(self, what: str, path: Path) -> None:
+        self.outputs.append((what, Path(path)))
+        print(f"   wrote {path}", flush=True)
 
 
 def run(args) -> int:
     from ..designio import mirror_table
     from ..solver import solve
     from ..spec import design_to_toml, load_design
+    from .design import main_table
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     spec = load_design(args.design)
+    steps = _Steps()
 
-    _step(f"design: {spec.name}")
-    from .design import main_table
-
+    steps.start(f"design: {spec.name} (solve + verify by ray trace)")
     design = solve(spec)
     print(main_table(design))
     (out / "design.json").write_text(json.dumps(mirror_table(design), indent=2))
     (out / f"{spec.name}.toml").write_text(design_to_toml(spec))
-    print(f"wrote {out / 'design.json'}")
+    steps.output("design table", out / "design.json")
 
-    print(f"\ndemo outputs: {out.resolve()}")
+    if "report" not in args.skip:
+        steps.start("design report (drift, interleave, tolerance Monte Carlo, paper comparison)")
+        from ..analysis.report import build_report
+
+        paths = build_report(spec, out / "report")
+        steps.output("design report", paths.html)
+        print(f"   wrote {paths.markdown} ({len(paths.figures)} figures)")
+
+    if "cad" not in args.skip:
+        steps.start("CAD of the mirror mounts (cadquery: STEP, STL, preview, manifest)")
+        from ..cad.export import export_cad
+
+        manifest = export_cad(design, args.cad_out)
+        steps.output("CAD folder", manifest.folder)
+
+    steps.done()
+    print("\ndemo outputs:")
+    for what, path in steps.outputs:
+        print(f"  {what:<16} {path.resolve()}")
     return 0
