@@ -1,0 +1,339 @@
+"""Ray caster of the simulated sensor: beams off finite mirrors into a trimesh/embree scene.
+
+Independent of :class:`~nodlidar.beams.BeamModel` on purpose (the two check each other):
+
+1. Every beam leaves the lidar origin along ``LidarModel.bearing_from_step`` (head frame)
+   at its own time ``t_scan + step * step_period`` (``t_scan`` is the SCIP timestamp of the
+   scan, which refers to step 0: conventions.md).
+2. In the head frame it is tested against every mirror as a finite rectangle
+   (:meth:`MirrorPatch.intersect`), the patches being ``design.patches(perturbations)`` (the
+   "as built" ground truth) turned about their hinge by the lift state at the beam's time.
+   The nearest mirror hit reflects it (:func:`~nodlidar.geometry.reflect`); up to
+   ``max_bounces`` times. A beam meeting a mirror's back is absorbed (no return).
+3. The outgoing ray is taken to the world at the beam's time: the nod pitch about
+   ``nod.pivot_m`` (conventions.md), then the sensor pose of the :class:`~.scene.Scene`.
+4. All rays of a scan are cast in one embree call against the static world
+   (``trimesh.ray.ray_pyembree.RayMeshIntersector.intersects_first``) and, per mover, in one
+   call against the mover's mesh with each ray moved into the mover's frame at its own time
+   (rigid translation: origin - position(t_i)). The distance to the triangle found is
+   recomputed in float64 from its plane (embree works in float32).
+5. Range = total path length (lidar -> mirror -> object), as the device measures it.
+
+Assumptions: nothing in the scene lies between the lidar and its mirrors (within the
+sensor head, ~0.2 m); the lidar housing does not block reflected beams (the solver keeps
+them clear); mirror glass has no thickness.
+
+The URG measurement model (:func:`measure`) adds Gaussian range noise with
+``LidarModel.range_sigma_m`` (the data sheet's +-30 mm to 1 m / +-3 % beyond read as
+3 sigma, i.e. 10 mm / 1 %; see lidar.py), rounds to mm, and reports no return as NaN.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import MirrorPatch, Perturbation, reflect
+from ..lidar import LidarModel
+from .scene import HIT_NONE, HIT_STATIC, Scene, load_scene
+
+__all__ = ["ScanTruth", "SceneSimulator", "measure", "lift_fraction", "rotate_about_axis"]
+
+
+def lift_fraction(servo_rad: np.ndarray | float, deployed_rad: float = 0.0,
+                  lifted_rad: float = math.pi / 2) -> np.ndarray:
+    """How far a mirror is lifted (0 deployed .. 1 lifted) at servo angle(s) [rad]."""
+    a = np.asarray(servo_rad, dtype=float)
+    return np.clip((a - deployed_rad) / (lifted_rad - deployed_rad), 0.0, 1.0)
+
+
+def rotate_about_axis(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rodrigues rotation of vectors ``v`` (n, 3) about unit ``axis`` (3,) by per-row
+    ``angle`` (n,) [rad] (right hand)."""
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    k = np.asarray(axis, dtype=float)
+    return v * c + np.cross(k, v) * s + np.outer(v @ k, k) * (1.0 - c)
+
+
+def measure(true_ranges_m: np.ndarray, model: LidarModel, rng: np.random.Generator | None,
+            *, noise: bool = True) -> np.ndarray:
+    """The URG's range measurement: true path length [m] -> reported range [m].
+
+    Adds ``N(0, range_sigma_m(r))`` noise (if ``noise``), rounds to the millimetre; no
+    return (NaN or inf) stays NaN. Range limits are not applied here: the SCIP emulator
+    turns values outside DMIN..DMAX into the device's error codes, and
+    :meth:`ScanTruth.measured_m` gives NaN for them.
+    """
+    r = np.asarray(true_ranges_m, dtype=float)
+    r = np.where(np.isfinite(r), r, np.nan)
+    if noise:
+        sig = model.range_sigma_m(np.nan_to_num(r))
+        r = r + rng.standard_normal(r.shape) * sig
+    return np.round(r * 1000.0) / 1000.0
+
+
+@dataclass(frozen=True, eq=False)
+class ScanTruth:
+    """One simulated scan with its per-beam ground truth. Arrays are ``(n,)`` / ``(n, 3)``
+    over the simulated steps.
+
+    Attributes
+    ----------
+    steps : int
+    t_s : float
+        Time of each beam [s].
+    nod_rad : float
+        Head pitch at each beam's time [rad].
+    true_range_m : float
+        Exact total path length [m] (NaN: no return).
+    range_m : float
+        What the device reports [m], noise and mm rounding applied, limits not (NaN: no
+        return).
+    mirror : int
+        Index (into ``design.mirrors``) of the first mirror the beam reflected off, -1 direct.
+    bounces : int
+        Number of mirror reflections.
+    object_id : int
+        ``HIT_NONE`` (-1), ``HIT_STATIC`` (0) or ``1 + k`` for mover ``k``.
+    part : int
+        Index into ``SceneSimulator.part_names`` for static hits, else -1.
+    point_world : float (n, 3)
+        True hit point in the world frame [m] (NaN: no return).
+    """
+
+    steps: np.ndarray
+    t_s: np.ndarray
+    nod_rad: np.ndarray
+    true_range_m: np.ndarray
+    range_m: np.ndarray
+    mirror: np.ndarray
+    bounces: np.ndarray
+    object_id: np.ndarray
+    part: np.ndarray
+    point_world: np.ndarray
+    range_min_m: float
+    range_max_m: float
+
+    def measured_m(self) -> np.ndarray:
+        """Ranges [m] a driver gets: NaN where the device sends an error code."""
+        r = self.range_m
+        ok = (r >= self.range_min_m) & (r <= self.range_max_m)
+        return np.where(ok, r, np.nan)
+
+
+class _MeshCaster:
+    """One mesh with an embree intersector; distances recomputed in float64."""
+
+    def __init__(self, mesh):
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+        self.mesh = mesh
+        self.intersector = RayMeshIntersector(mesh)
+        tri = np.asarray(mesh.triangles, dtype=float)
+        self.v0 = tri[:, 0]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest hit of each ray: ``(distance (n,) [m], inf if none; triangle (n,), -1)``."""
+        tri = np.asarray(self.intersector.intersects_first(origins, dirs), dtype=np.int64)
+        t = np.full(len(tri), np.inf)
+        hit = tri >= 0
+        if np.any(hit):
+            n = self.normals[tri[hit]]
+            num = np.sum((self.v0[tri[hit]] - origins[hit]) * n, axis=1)
+            den = np.sum(dirs[hit] * n, axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t[hit] = np.where(np.abs(den) > 1e-12, num / den, np.inf)
+        return t, tri
+
+
+class SceneSimulator:
+    """Casts the beams of a design's sensor head into a :class:`~.scene.Scene`.
+
+    Parameters
+    ----------
+    design : Design
+        Solved design: the lidar, the mirrors, the nod pivot, the lift geometry.
+    scene : Scene, str or None
+        Scene, built-in name or TOML path (default ``"room"``).
+    perturbations : mapping name -> Perturbation, optional
+        "As built" mirror errors (ground truth), e.g. ``nodlidar.paper.TABLE_I_PERTURBATIONS``.
+    max_bounces : int
+        Mirror reflections followed per beam.
+
+    Building the embree scenes happens here (CPU work, no I/O).
+    """
+
+    def __init__(self, design, scene: Scene | str | None = None,
+                 perturbations: Mapping[str, Perturbation] | None = None, *, max_bounces: int = 2):
+        self.design = design
+        self.lidar: LidarModel = design.lidar
+        self.scene = load_scene(scene)
+        self.perturbations = dict(perturbations or {})
+        self.patches: list[MirrorPatch] = design.patches(self.perturbations)
+        self.mirror_sides = np.array([m.side for m in design.mirrors])
+        self.lift_angle_rad = float(design.spec.mirror.lift_angle_rad)
+        self.pivot = np.asarray(design.spec.nod.pivot_m, dtype=float)
+        self.max_bounces = int(max_bounces)
+        th = self.lidar.bearing_from_step(self.lidar.steps)
+        self._dir0 = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
+        import trimesh
+
+        parts = self.scene.static_parts()
+        self.part_names = [name for name, _ in parts]
+        if parts:
+            meshes = [m for _, m in parts]
+            self._face_part = np.concatenate([np.full(len(m.faces), i) for i, m in enumerate(meshes)])
+            self._static = _MeshCaster(trimesh.util.concatenate(meshes))
+        else:
+            self._face_part = np.zeros(0, dtype=int)
+            self._static = None
+        self._movers = [_MeshCaster(m.mesh()) for m in self.scene.movers]
+
+    # -- pieces ------------------------------------------------------------------------
+    def beam_times(self, t_scan_s: float, steps: np.ndarray | None = None) -> np.ndarray:
+        """Time [s] of each step's measurement in the scan stamped ``t_scan_s`` (step 0)."""
+        steps = self.lidar.steps if steps is None else np.asarray(steps)
+        return t_scan_s + self.lidar.first_step_offset_s + self.lidar.time_offset_from_step(steps)
+
+    def head_rays(self, steps: np.ndarray, lift_left: np.ndarray | float = 0.0,
+                  lift_right: np.ndarray | float = 0.0):
+        """Trace beams off the mirrors in the head frame.
+
+        Parameters
+        ----------
+        steps : (n,) int
+        lift_left, lift_right : (n,) or float
+            Lift fraction (0 deployed, 1 lifted) of each side's mirrors at each beam's time.
+
+        Returns
+        -------
+        start (n, 3), direction (n, 3), path offset (n,) [m], first mirror (n,) int (-1
+        direct), bounces (n,) int, alive (n,) bool (False: absorbed by a mirror's back).
+        """
+        steps = np.asarray(steps)
+        self.lidar.check_step(steps, "steps")
+        n = len(steps)
+        o = np.zeros((n, 3))
+        d = self._dir0[steps - self.lidar.step_min].copy()
+        off = np.zeros(n)
+        first = np.full(n, -1)
+        bounces = np.zeros(n, dtype=int)
+        alive = np.ones(n, dtype=bool)
+        last = np.full(n, -1)
+        frac = {"L": np.broadcast_to(np.asarray(lift_left, float), (n,)),
+                "R": np.broadcast_to(np.asarray(lift_right, float), (n,))}
+        for _ in range(self.max_bounces):
+            best_t = np.full(n, np.inf)
+            best_m = np.full(n, -1)
+            best_nrm = np.zeros((n, 3))
+            for i, p in enumerate(self.patches):
+                # the lift motor turns the side's mirrors by -sign(hinge_z) * lift_angle * f
+                # (conventions.md); intersect the unturned patch with the ray turned back
+                ang = -np.sign(p.hinge_z) * self.lift_angle_rad * frac[self.mirror_sides[i]]
+                if np.any(ang != 0):
+                    pivot = p.origin_ + p.hinge_z * p.up_
+                    ol = pivot + rotate_about_axis(o - pivot, p.along_, -ang)
+                    dl = rotate_about_axis(d, p.along_, -ang)
+                    nrm = rotate_about_axis(np.broadcast_to(p.normal_, (n, 3)), p.along_, ang)
+                else:
+                    ol, dl, nrm = o, d, np.broadcast_to(p.normal_, (n, 3))
+                t, _, _ = p.intersect(ol, dl)
+                t = np.where(alive & (last != i), t, np.inf)
+                closer = t < best_t
+                best_t = np.where(closer, t, best_t)
+                best_m = np.where(closer, i, best_m)
+                best_nrm = np.where(closer[:, None], nrm, best_nrm)
+            hit = np.isfinite(best_t)
+            if not np.any(hit):
+                break
+            # the reflecting side faces the lidar (normal towards it): a hit on the back
+            # (d . n > 0) is absorbed
+            front = np.sum(d * best_nrm, axis=1) < 0
+            alive &= ~(hit & ~front)
+            ref = hit & front
+            o = np.where(ref[:, None], o + np.where(ref, best_t, 0.0)[:, None] * d, o)
+            off = off + np.where(ref, best_t, 0.0)
+            d = np.where(ref[:, None], reflect(d, best_nrm), d)
+            first = np.where(ref & (first < 0), best_m, first)
+            bounces += ref
+            last = np.where(ref, best_m, last)
+        return o, d, off, first, bounces, alive
+
+    def to_world(self, p_head: np.ndarray, d_head: np.ndarray, nod_rad: np.ndarray,
+                 t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Head-frame points/directions at per-row nod [rad] and time [s] -> world frame."""
+        c, s = np.cos(nod_rad), np.sin(nod_rad)
+
+        def ry(v):  # R_y(nod) per row: positive pitch tips +x down (conventions.md)
+            return np.stack([c * v[:, 0] + s * v[:, 2], v[:, 1], -s * v[:, 0] + c * v[:, 2]], -1)
+
+        p_sensor = ry(p_head - self.pivot) + self.pivot
+        d_sensor = ry(d_head)
+        pose = self.scene.sensor
+        return pose.to_world(p_sensor, t_s), d_sensor @ pose.rotation.T
+
+    def cast_world(self, origins: np.ndarray, dirs: np.ndarray, t_s: np.ndarray):
+        """Nearest hit of world rays among the static world and the movers at times ``t_s``.
+
+        Returns ``(distance (n,) [m] inf = none, object_id (n,), part (n,))``.
+        """
+        n = len(origins)
+        dist = np.full(n, np.inf)
+        obj = np.full(n, HIT_NONE)
+        part = np.full(n, -1)
+        if self._static is not None:
+            t, tri = self._static.cast(origins, dirs)
+            hit = np.isfinite(t)
+            dist[hit], obj[hit] = t[hit], HIT_STATIC
+            part[hit] = self._face_part[tri[hit]]
+        for k, (mover, caster) in enumerate(zip(self.scene.movers, self._movers)):
+            # a rigidly translating object: cast each ray in the object's frame at its time
+            t, _ = caster.cast(origins - mover.position(t_s), dirs)
+            closer = t < dist
+            dist[closer], obj[closer], part[closer] = t[closer], 1 + k, -1
+        return dist, obj, part
+
+    # -- whole scan --------------------------------------------------------------------
+    def scan(self, t_scan_s: float = 0.0, nod_rad: np.ndarray | float = 0.0,
+             lift_left: np.ndarray | float = 0.0, lift_right: np.ndarray | float = 0.0, *,
+             steps: np.ndarray | None = None, noise: bool = True,
+             rng: np.random.Generator | None = None, seed: int | None = 0) -> ScanTruth:
+        """Simulate one scan.
+
+        Parameters
+        ----------
+        t_scan_s : float
+            Scan timestamp (time of step 0) [s].
+        nod_rad : float or (n,)
+            Head pitch at each beam's time [rad].
+        lift_left, lift_right : float or (n,)
+            Lift fraction per side (0 deployed, 1 lifted; see :func:`lift_fraction`).
+        steps : (n,) int, optional
+            Steps to simulate (default all valid steps).
+        noise : bool
+            Add the URG range noise.
+        rng, seed : optional
+            Noise generator, or a seed for a fresh one.
+        """
+        steps = self.lidar.steps if steps is None else np.asarray(steps)
+        n = len(steps)
+        t = self.beam_times(t_scan_s, steps)
+        nod = np.broadcast_to(np.asarray(nod_rad, dtype=float), (n,)).astype(float)
+        o_h, d_h, off, first, bounces, alive = self.head_rays(steps, lift_left, lift_right)
+        o_w, d_w = self.to_world(o_h, d_h, nod, t)
+        dist, obj, part = self.cast_world(o_w, d_w, t)
+        hit = alive & np.isfinite(dist)
+        true_r = np.where(hit, off + dist, np.nan)
+        pts = np.where(hit[:, None], o_w + np.where(hit, dist, 0.0)[:, None] * d_w, np.nan)
+        if noise and rng is None:
+            rng = np.random.default_rng(seed)
+        r = measure(true_r, self.lidar, rng, noise=noise)
+        return ScanTruth(steps=steps, t_s=t, nod_rad=nod, true_range_m=true_r, range_m=r,
+                         mirror=first, bounces=bounces, object_id=np.where(hit, obj, HIT_NONE),
+                         part=np.where(hit, part, -1), point_world=pts,
+                         range_min_m=self.lidar.range_min_m, range_max_m=self.lidar.range_max_m)
