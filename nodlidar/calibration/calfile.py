@@ -1,0 +1,189 @@
+"""Calibration files (TOML): the fitted mirror perturbations the runtime applies.
+
+Layout::
+
+    id = "cal-3f2a9c0d1e4b"
+    created = "2026-11-22T08:30:00+00:00"
+    model = "exact"
+    source = "sim: 3 walls"
+    [design]
+    name = "urg04lx-paper"
+    hash = "0123456789abcdef"     # fit.design_hash: the geometric parameters
+    [mirrors.L1]
+    dalpha_rad = -0.043
+    dbeta_rad = 0.05
+    dd_m = 0.01
+    sigma_dalpha_rad = 7e-5
+    sigma_dbeta_rad = 3e-4
+    sigma_dd_m = 1e-4
+    [mirrors.L1.residuals]        # after calibration, over all walls
+    rms_m = ...; max_abs_m = ...; within_band = ...; band_m = 0.0225; n = ...
+    [mirrors.L1.residuals_before]
+    ...
+
+The runtime applies it as ``design.beam_model(load_calibration(path, design).perturbations)``
+and records ``.id`` with every cloud. A file made for another design (different geometric
+hash) is refused.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import tomllib
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from ..errors import CalibrationError, DesignFileError
+from ..geometry import Perturbation
+from .fit import CalibrationResult, design_hash
+
+__all__ = ["Calibration", "calibration_from_result", "write_calibration", "load_calibration",
+           "read_calibration"]
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A calibration as stored in a file.
+
+    Attributes
+    ----------
+    id : str
+        Identifier recorded with every cloud made with it.
+    design_name, design_hash : str
+        The design it belongs to.
+    created : str
+        ISO 8601 time (UTC).
+    model : str
+        Point model used by the fit ("exact" or "paper").
+    perturbations : dict
+        Mirror name -> Perturbation.
+    sigma : dict
+        Mirror name -> (sigma dalpha [rad], sigma dbeta [rad], sigma dd [m]).
+    residuals, residuals_before : dict
+        Mirror name -> residual statistics (``ResidualStats.to_dict``).
+    source : str
+        Where the data came from.
+    """
+
+    id: str
+    design_name: str
+    design_hash: str
+    created: str
+    model: str
+    perturbations: dict[str, Perturbation]
+    sigma: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    residuals: dict[str, dict[str, float]] = field(default_factory=dict)
+    residuals_before: dict[str, dict[str, float]] = field(default_factory=dict)
+    source: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        mirrors: dict[str, Any] = {}
+        for name, p in self.perturbations.items():
+            m: dict[str, Any] = {"dalpha_rad": p.dalpha, "dbeta_rad": p.dbeta, "dd_m": p.dd}
+            if name in self.sigma:
+                s = self.sigma[name]
+                m.update(sigma_dalpha_rad=s[0], sigma_dbeta_rad=s[1], sigma_dd_m=s[2])
+            if name in self.residuals:
+                m["residuals"] = dict(self.residuals[name])
+            if name in self.residuals_before:
+                m["residuals_before"] = dict(self.residuals_before[name])
+            mirrors[name] = m
+        return {"id": self.id, "created": self.created, "model": self.model, "source": self.source,
+                "design": {"name": self.design_name, "hash": self.design_hash}, "mirrors": mirrors}
+
+
+def calibration_from_result(result: CalibrationResult, *, source: str = "",
+                            created: str | None = None) -> Calibration:
+    """Wrap a fit result as a :class:`Calibration` (id = hash of design, time, parameters)."""
+    created = created or datetime.now(UTC).replace(microsecond=0).isoformat()
+    key = repr((result.design_hash, created, sorted((k, tuple(p.as_array())) for k, p in
+                                                    result.perturbations.items())))
+    cid = "cal-" + hashlib.sha256(key.encode()).hexdigest()[:12]
+    return Calibration(
+        id=cid, design_name=result.design_name, design_hash=result.design_hash, created=created,
+        model=result.model, perturbations=result.perturbations,
+        sigma={k: tuple(float(v) for v in m.sigma) for k, m in result.mirrors.items()},
+        residuals={k: m.after.to_dict() for k, m in result.mirrors.items()},
+        residuals_before={k: m.before.to_dict() for k, m in result.mirrors.items()},
+        source=source)
+
+
+def write_calibration(path: str | Path, cal: Calibration | CalibrationResult, **kw) -> Calibration:
+    """Write a calibration TOML file; returns the :class:`Calibration` written."""
+    import tomli_w
+
+    if isinstance(cal, CalibrationResult):
+        cal = calibration_from_result(cal, **kw)
+    Path(path).write_text(tomli_w.dumps(cal.to_dict()))
+    return cal
+
+
+def _num(table: dict, key: str, where: str) -> float:
+    v = table.get(key)
+    if not isinstance(v, int | float) or isinstance(v, bool):
+        raise DesignFileError(f"{where}: '{key}' must be a number, got {v!r}")
+    return float(v)
+
+
+def read_calibration(path: str | Path) -> Calibration:
+    """Read a calibration file without checking which design it belongs to."""
+    p = Path(path)
+    if not p.is_file():
+        raise DesignFileError(f"calibration file not found: {p}")
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise DesignFileError(f"{p}: malformed TOML: {exc}") from None
+    for key in ("id", "design", "mirrors"):
+        if key not in data:
+            raise DesignFileError(f"{p}: not a calibration file (missing '{key}')")
+    des = data["design"]
+    if not isinstance(des, dict) or not {"name", "hash"} <= set(des):
+        raise DesignFileError(f"{p}: [design] needs 'name' and 'hash'")
+    perts, sig, res, res0 = {}, {}, {}, {}
+    for name, m in data["mirrors"].items():
+        where = f"{p} [mirrors.{name}]"
+        if not isinstance(m, dict):
+            raise DesignFileError(f"{where} must be a table")
+        perts[name] = Perturbation(_num(m, "dalpha_rad", where), _num(m, "dbeta_rad", where),
+                                   _num(m, "dd_m", where))
+        if "sigma_dalpha_rad" in m:
+            sig[name] = tuple(_num(m, k, where) for k in
+                              ("sigma_dalpha_rad", "sigma_dbeta_rad", "sigma_dd_m"))
+        if "residuals" in m:
+            res[name] = dict(m["residuals"])
+        if "residuals_before" in m:
+            res0[name] = dict(m["residuals_before"])
+    return Calibration(id=str(data["id"]), design_name=str(des["name"]), design_hash=str(des["hash"]),
+                       created=str(data.get("created", "")), model=str(data.get("model", "exact")),
+                       perturbations=perts, sigma=sig, residuals=res, residuals_before=res0,
+                       source=str(data.get("source", "")))
+
+
+def load_calibration(path: str | Path, design) -> Calibration:
+    """Read a calibration file and check it belongs to ``design`` (a Design or DesignSpec).
+
+    Raises
+    ------
+    CalibrationError
+        The file was made for a different design (other geometric parameters), or names
+        mirrors the design does not have.
+    DesignFileError
+        Missing or malformed file.
+    """
+    cal = read_calibration(path)
+    spec = getattr(design, "spec", design)
+    h = design_hash(spec)
+    if cal.design_hash != h:
+        raise CalibrationError(
+            f"{path}: calibration {cal.id} was made for design '{cal.design_name}' "
+            f"(hash {cal.design_hash}), not for '{spec.name}' (hash {h}); recalibrate this design")
+    if hasattr(design, "mirrors"):
+        names = {m.name for m in design.mirrors}
+        extra = sorted(set(cal.perturbations) - names)
+        if extra:
+            raise CalibrationError(f"{path}: calibration names mirror(s) {', '.join(extra)} that "
+                                   f"design '{spec.name}' does not have ({', '.join(sorted(names))})")
+    return cal

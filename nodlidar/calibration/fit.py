@@ -1,0 +1,410 @@
+"""Per-mirror least-squares calibration against walls (paper Section IV, eq. 10).
+
+For each mirror, find the mounting error ``(dalpha, dbeta, dd)`` that puts its reflected
+beams on the walls fitted from the direct beams::
+
+    argmin  sum_k sum_i ((v_i - v_i^d) . n_k)^2    s.t. bounds      (eq. 10)
+
+``v_i`` is the reflected beam's point under the candidate perturbation. Two point models:
+
+* ``"exact"`` (default): the geometry core - the mirror's patch perturbed by
+  :meth:`~nodlidar.geometry.MirrorPatch.perturbed` (the only place perturbations are
+  applied), a one-mirror :class:`~nodlidar.beams.BeamModel` built from it, and
+  :meth:`~nodlidar.beams.BeamModel.points` with each beam's nod angle.
+* ``"paper"``: the paper's eqs 4-8 as printed (:func:`~nodlidar.closed_form.eq4_8_point`),
+  read in the sensor frame the way ``tests/test_paper_reproduction.py`` does (x/y swapped
+  as eq. 7 writes them; the right side by mirror symmetry), then nodded. Kept for
+  comparison; docs/paper-reproduction.md explains why it cannot fit.
+
+Uncertainty: ``cov = s^2 (J^T J)^-1`` at the solution with ``s^2 = sum(res^2)/(n - 3)``.
+Degenerate data is refused (:class:`~nodlidar.errors.CalibrationError`): fewer than three
+wall orientations, too few reflected points on a mirror, an ill-conditioned ``J^T J``.
+
+The ``[calibration]`` table of a design file (all keys optional)::
+
+    [calibration]
+    dalpha_bound_rad = 0.1      # |dalpha| <= this
+    dbeta_bound_rad = 0.1
+    dd_bound_m = 0.03
+    min_points = 100            # reflected points per mirror over all walls
+    min_walls = 3
+    min_wall_angle_deg = 10.0   # walls closer than this in orientation count as one
+    max_condition = 1e10        # of the column-scaled J^T J
+    band_m = 0.0225             # the paper's +-2.25 cm band in the residual statistics
+    plane_mad_k = 4.0           # plane-fit outlier threshold [robust sigmas]
+    outlier_mad_k = 5.0         # reflected-point outlier threshold after the first fit
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..beams import BeamModel
+from ..closed_form import eq4_8_point
+from ..errors import CalibrationError, ParameterError, require
+from ..geometry import Perturbation
+from .walls import Plane, WallCapture, check_wall_orientations, fit_plane
+
+__all__ = ["CalibrationConfig", "calibration_config", "ResidualStats", "MirrorFit",
+           "CaptureFit", "CalibrationResult", "calibrate", "fit_planes", "MODELS",
+           "design_hash"]
+
+MODELS = ("exact", "paper")
+PARAMS = ("dalpha", "dbeta", "dd")
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Bounds and thresholds of the fit (the design file's ``[calibration]`` table)."""
+
+    dalpha_bound_rad: float = 0.1
+    dbeta_bound_rad: float = 0.1
+    dd_bound_m: float = 0.03
+    min_points: int = 100
+    min_walls: int = 3
+    min_wall_angle_deg: float = 10.0
+    max_condition: float = 1e10
+    band_m: float = 0.0225
+    plane_mad_k: float = 4.0
+    outlier_mad_k: float = 5.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            require(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                    and v > 0, f"calibration.{f.name}", v, "a finite number > 0")
+        require(self.min_walls >= 3, "calibration.min_walls", self.min_walls,
+                ">= 3 (fewer walls cannot separate the three parameters)")
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        b = np.array([self.dalpha_bound_rad, self.dbeta_bound_rad, self.dd_bound_m])
+        return -b, b
+
+
+def calibration_config(source=None) -> CalibrationConfig:
+    """The ``[calibration]`` table of a DesignSpec (or a dict); defaults where absent."""
+    if source is None:
+        table: dict[str, Any] = {}
+    elif isinstance(source, dict):
+        table = source
+    else:
+        table = source.sections.get("calibration", {})
+    if not isinstance(table, dict):
+        raise ParameterError("calibration", table, "a table")
+    known = {f.name for f in fields(CalibrationConfig)}
+    extra = sorted(set(table) - known)
+    if extra:
+        raise ParameterError(f"calibration.{extra[0]}", table[extra[0]],
+                             f"one of the keys {', '.join(sorted(known))}")
+    return CalibrationConfig(**table)
+
+
+def design_hash(spec) -> str:
+    """Short hash [16 hex] of a design's geometric parameters (lidar, layout, placement,
+    mirror, nod) - not its name, description, reference numbers or tool tables, which do
+    not change the geometry a calibration belongs to."""
+    import hashlib
+    import json
+
+    d = spec.to_dict()
+    geo = {k: d[k] for k in ("lidar", "layout", "placement", "mirror", "nod")}
+    return hashlib.sha256(json.dumps(geo, sort_keys=True).encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class ResidualStats:
+    """Point-to-plane residuals of one set of points [m]."""
+
+    n: int
+    mean_m: float
+    rms_m: float
+    max_abs_m: float
+    within_band: float
+    band_m: float
+
+    @classmethod
+    def of(cls, res: np.ndarray, band_m: float) -> ResidualStats:
+        res = np.asarray(res, dtype=float)
+        return cls(n=int(res.size), mean_m=float(res.mean()), rms_m=float(np.sqrt(np.mean(res**2))),
+                   max_abs_m=float(np.max(np.abs(res))),
+                   within_band=float(np.mean(np.abs(res) <= band_m)), band_m=float(band_m))
+
+    def to_dict(self) -> dict[str, float]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@dataclass(frozen=True, eq=False)
+class MirrorFit:
+    """One mirror's calibration.
+
+    Attributes
+    ----------
+    name : str
+    perturbation : Perturbation
+        The fitted mounting error.
+    sigma : (3,) float
+        1-sigma of (dalpha [rad], dbeta [rad], dd [m]) from the Jacobian.
+    before, after : ResidualStats
+        Residuals of the used points with no perturbation / the fitted one.
+    capture : (n,) int
+        Capture index of each reflected point (all finite ones, outliers included).
+    residual_before, residual_after : (n,) float
+        Signed point-to-plane distance of each point [m].
+    points_after : (n, 3) float
+        Calibrated points in the sensor frame [m].
+    used : (n,) bool
+        Points kept by the outlier rejection.
+    condition : float
+        Condition number of the column-scaled ``J^T J`` at the solution.
+    at_bound : tuple of str
+        Parameters that ended on a bound (the fit is then not trustworthy).
+    nfev : int
+        Residual evaluations.
+    """
+
+    name: str
+    perturbation: Perturbation
+    sigma: np.ndarray
+    before: ResidualStats
+    after: ResidualStats
+    capture: np.ndarray
+    residual_before: np.ndarray
+    residual_after: np.ndarray
+    points_after: np.ndarray
+    used: np.ndarray
+    condition: float
+    at_bound: tuple[str, ...]
+    nfev: int
+
+    def to_dict(self) -> dict[str, Any]:
+        p = self.perturbation
+        return {"name": self.name, "dalpha_rad": p.dalpha, "dbeta_rad": p.dbeta, "dd_m": p.dd,
+                "sigma_dalpha_rad": float(self.sigma[0]), "sigma_dbeta_rad": float(self.sigma[1]),
+                "sigma_dd_m": float(self.sigma[2]), "n_points": int(self.used.size),
+                "n_used": int(self.used.sum()), "before": self.before.to_dict(),
+                "after": self.after.to_dict(), "condition": self.condition,
+                "at_bound": list(self.at_bound), "nfev": self.nfev}
+
+
+@dataclass(frozen=True, eq=False)
+class CaptureFit:
+    """One wall capture's plane and its direct points (sensor frame)."""
+
+    name: str
+    plane: Plane
+    direct_points: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Everything :func:`calibrate` found."""
+
+    design_name: str
+    design_hash: str
+    model: str
+    captures: tuple[CaptureFit, ...]
+    mirrors: dict[str, MirrorFit] = field(default_factory=dict)
+
+    @property
+    def perturbations(self) -> dict[str, Perturbation]:
+        """Mirror name -> fitted Perturbation (feed to ``design.beam_model``)."""
+        return {k: m.perturbation for k, m in self.mirrors.items()}
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"design": self.design_name, "design_hash": self.design_hash, "model": self.model,
+                "walls": [{"name": c.name, "normal": c.plane.normal.tolist(),
+                           "offset_m": c.plane.offset_m, "plane_rms_m": c.plane.rms_m,
+                           "n_direct": int(c.plane.inliers.sum())} for c in self.captures],
+                "mirrors": {k: m.to_dict() for k, m in self.mirrors.items()}}
+
+
+# ---------------------------------------------------------------------------------------
+
+
+def fit_planes(design, captures: list[WallCapture], config: CalibrationConfig) -> list[CaptureFit]:
+    """Robust PCA plane of each capture's direct beams (independent of the mirrors)."""
+    out = []
+    for k, cap in enumerate(captures):
+        name = cap.name or f"capture {k}"
+        bm = design.beam_model(mirrors_deployed=cap.mirrors_deployed)
+        direct = (bm.mirror_index(cap.steps) == -1) & np.isfinite(cap.ranges_m)
+        pts = bm.points(cap.steps[direct], cap.ranges_m[direct], cap.nod_rad[direct])
+        plane = fit_plane(pts, mad_k=config.plane_mad_k, name=name)
+        out.append(CaptureFit(name=name, plane=plane, direct_points=pts[plane.inliers]))
+    return out
+
+
+class _MirrorProblem:
+    """The residual function of one mirror over all captures (vectorised over points)."""
+
+    def __init__(self, design, name: str, steps, ranges, nod, normals, offsets, model: str):
+        self.design = design
+        self.sol = design.mirror(name)
+        self.steps, self.ranges, self.nod = steps, ranges, nod
+        self.normals, self.offsets = normals, offsets
+        self.model = model
+        lidar = design.lidar
+        # a one-mirror beam map: this mirror's steps -> index 0, everything else direct
+        self.mos = np.full(lidar.n_steps, -1, dtype=int)
+        self.mos[self.sol.steps - lidar.step_min] = 0
+        self.pivot = np.asarray(design.spec.nod.pivot_m, dtype=float)
+        if model == "paper":
+            self._paper_setup()
+
+    def subset(self, mask: np.ndarray) -> _MirrorProblem:
+        """The same problem on the points selected by ``mask``."""
+        return _MirrorProblem(self.design, self.sol.name, self.steps[mask], self.ranges[mask],
+                              self.nod[mask], self.normals[mask], self.offsets[mask], self.model)
+
+    def points(self, x: np.ndarray) -> np.ndarray:
+        """Sensor-frame points (n, 3) of this mirror's beams under perturbation ``x``."""
+        if self.model == "paper":
+            return self._paper_points(x)
+        patch = self.sol.patch.perturbed(Perturbation.from_array(x))
+        bm = BeamModel.build(self.design.lidar, [patch], self.mos, self.pivot)
+        return bm.points(self.steps, self.ranges, self.nod)
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", self.points(x), self.normals) - self.offsets
+
+    # -- the paper's eqs 4-8 ---------------------------------------------------------
+    def _paper_setup(self) -> None:
+        sol = self.sol
+        # eqs 4-8 are written for a left mirror; a right one is its mirror image (y -> -y)
+        self.sgn = float(sol.sign)
+        th = self.design.lidar.bearing_from_step(self.steps)
+        self.theta = self.sgn * th
+        self.alpha = self.sgn * sol.patch.normal_azimuth
+        self.d = sol.standoff_m
+        self.h = -sol.patch.hinge_z
+
+    def _paper_points(self, x: np.ndarray) -> np.ndarray:
+        p = eq4_8_point(self.ranges, self.theta, self.alpha, self.d, self.h,
+                        self.sgn * x[0], x[1], x[2])
+        # eq. 7 gives x = r sin(theta_a), y = r cos(theta_a): swap to the sensor's x/y
+        q = np.stack([p[:, 1], -self.sgn * p[:, 0], p[:, 2]], -1) - self.pivot
+        c, s = np.cos(self.nod), np.sin(self.nod)
+        return np.stack([c * q[:, 0] + s * q[:, 2], q[:, 1], -s * q[:, 0] + c * q[:, 2]], -1) + self.pivot
+
+
+def _scaled_condition(J: np.ndarray) -> float:
+    scale = np.linalg.norm(J, axis=0)
+    if np.any(scale == 0):
+        return math.inf
+    s = np.linalg.svd(J / scale, compute_uv=False)
+    return float((s[0] / s[-1]) ** 2) if s[-1] > 0 else math.inf
+
+
+def _fit_mirror(prob: _MirrorProblem, config: CalibrationConfig, x0: np.ndarray) -> MirrorFit:
+    lo, hi = config.bounds
+    n = prob.ranges.size
+    used = np.ones(n, dtype=bool)
+    r0 = prob.residuals(np.zeros(3))
+    x = np.clip(x0, lo * 0.999, hi * 0.999)
+    nfev = 0
+    for _ in range(4):
+        sub = prob.subset(used)
+        sol = least_squares(sub.residuals, x, bounds=(lo, hi), method="trf", x_scale="jac",
+                            xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+        x, nfev = sol.x, nfev + sol.nfev
+        res = prob.residuals(x)
+        # after the first fit, drop points that no mirror pose explains (beams clipped by
+        # the glass edge, hitting something other than the wall)
+        med = np.median(res[used])
+        mad = 1.4826 * np.median(np.abs(res[used] - med))
+        new = np.abs(res - med) <= config.outlier_mad_k * max(mad, 1e-4)
+        if new.sum() < config.min_points:
+            raise CalibrationError(f"mirror {prob.sol.name}: only {int(new.sum())} reflected points "
+                                   f"agree with one mirror pose; need {int(config.min_points)}")
+        if np.array_equal(new, used):
+            break
+        used = new
+    J = sol.jac
+    cond = _scaled_condition(J)
+    if not cond <= config.max_condition:
+        raise CalibrationError(
+            f"mirror {prob.sol.name}: the walls do not determine (dalpha, dbeta, dd) - the "
+            f"least-squares problem is ill-conditioned (cond(J^T J) = {cond:.3g} > "
+            f"{config.max_condition:.3g}); capture the wall at more distinct orientations "
+            f"and with the head nodding")
+    dof = max(1, int(used.sum()) - 3)
+    s2 = float(np.sum(sol.fun**2) / dof)
+    cov = s2 * np.linalg.inv(J.T @ J)
+    sigma = np.sqrt(np.diag(cov))
+    at_bound = tuple(p for p, v, a, b in zip(PARAMS, x, lo, hi)
+                     if abs(v - a) < 1e-6 * (b - a) or abs(v - b) < 1e-6 * (b - a))
+    return MirrorFit(name=prob.sol.name, perturbation=Perturbation.from_array(x), sigma=sigma,
+                     before=ResidualStats.of(r0[used], config.band_m),
+                     after=ResidualStats.of(res[used], config.band_m),
+                     capture=np.empty(0, int), residual_before=r0, residual_after=res,
+                     points_after=prob.points(x), used=used, condition=cond,
+                     at_bound=at_bound, nfev=nfev)
+
+
+def calibrate(design, captures: list[WallCapture], *, model: str = "exact",
+              config: CalibrationConfig | None = None, mirrors: list[str] | None = None,
+              x0: dict[str, Perturbation] | None = None) -> CalibrationResult:
+    """Fit every mirror's (dalpha, dbeta, dd) from wall captures.
+
+    Parameters
+    ----------
+    design : Design
+        The solved design the sensor was built to.
+    captures : list of WallCapture
+        At least three sweeps of a flat wall at distinct orientations, mirrors deployed.
+    model : "exact" or "paper"
+        Point model (module docstring).
+    config : CalibrationConfig, optional
+        Default: the design file's ``[calibration]`` table.
+    mirrors : list of str, optional
+        Subset of mirrors to fit (default all).
+    x0 : dict, optional
+        Starting perturbations (default zero: the design).
+
+    Raises
+    ------
+    CalibrationError
+        Degenerate data, with what is wrong.
+    """
+    require(model in MODELS, "model", model, " or ".join(MODELS))
+    config = config or calibration_config(design.spec)
+    captures = list(captures)
+    if not captures:
+        raise CalibrationError("no wall captures given; calibration needs at least "
+                               f"{config.min_walls} captures at different orientations")
+    fits = fit_planes(design, captures, config)
+    check_wall_orientations([c.plane for c in fits], [c.name for c in fits],
+                            min_walls=int(config.min_walls),
+                            min_angle_rad=np.radians(config.min_wall_angle_deg))
+    names = mirrors or [m.name for m in design.mirrors]
+    out: dict[str, MirrorFit] = {}
+    for name in names:
+        sol = design.mirror(name)
+        parts = []
+        for k, (cap, cf) in enumerate(zip(captures, fits)):
+            if not cap.mirrors_deployed:
+                continue
+            sel = np.isin(cap.steps, sol.steps) & np.isfinite(cap.ranges_m)
+            parts.append((k, cap.steps[sel], cap.ranges_m[sel], cap.nod_rad[sel], cf.plane))
+        n_pts = sum(p[1].size for p in parts)
+        if n_pts < config.min_points:
+            raise CalibrationError(f"mirror {name}: only {n_pts} reflected points on the walls; "
+                                   f"need at least {int(config.min_points)} (are the mirrors deployed "
+                                   "and is the wall in front of the sensor?)")
+        steps, ranges, nod = (np.concatenate([p[i] for p in parts]) for i in (1, 2, 3))
+        kidx = np.concatenate([np.full(p[1].size, p[0]) for p in parts])
+        normals = np.concatenate([np.broadcast_to(p[4].normal, (p[1].size, 3)) for p in parts])
+        offsets = np.concatenate([np.full(p[1].size, p[4].offset_m) for p in parts])
+        prob = _MirrorProblem(design, name, steps, ranges, nod, normals, offsets, model)
+        start = (x0 or {}).get(name, Perturbation()).as_array()
+        fit = _fit_mirror(prob, config, start)
+        object.__setattr__(fit, "capture", kidx)
+        out[name] = fit
+    return CalibrationResult(design_name=design.spec.name, design_hash=design_hash(design.spec),
+                             model=model, captures=tuple(fits), mirrors=out)

@@ -1,0 +1,184 @@
+"""Wall captures and the robust PCA plane fit of their direct (unreflected) beams.
+
+A :class:`WallCapture` is one nodded sweep of the sensor facing a flat wall: per beam its
+step, measured range and the head's nod angle at the beam's time. The middle window's
+beams see the wall directly, so their sensor-frame points do not depend on any mirror
+perturbation; their plane (paper Section IV: "PCA based plane fitting") is the reference
+against which the reflected beams are calibrated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import CalibrationError, ParameterError
+
+__all__ = ["WallCapture", "Plane", "fit_plane", "check_wall_orientations"]
+
+
+@dataclass(frozen=True, eq=False)
+class WallCapture:
+    """One capture of a flat wall (a nodded sweep).
+
+    Attributes
+    ----------
+    steps : (n,) int
+        Lidar step of each beam.
+    ranges_m : (n,) float
+        Measured range (total path length for reflected beams) [m]; NaN = no return.
+    nod_rad : (n,) float
+        Nod (pitch) angle of the head at each beam's time [rad].
+    mirrors_deployed : bool
+        Whether the mirrors were down (reflecting) during the capture.
+    name : str
+        Label used in reports and figures.
+    """
+
+    steps: np.ndarray
+    ranges_m: np.ndarray
+    nod_rad: np.ndarray
+    mirrors_deployed: bool = True
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        steps = np.asarray(self.steps)
+        r = np.asarray(self.ranges_m, dtype=float)
+        nod = np.asarray(self.nod_rad, dtype=float)
+        if steps.ndim != 1 or not np.issubdtype(steps.dtype, np.integer):
+            raise ParameterError("capture.steps", f"shape {steps.shape} dtype {steps.dtype}",
+                                 "a 1-D integer array")
+        if r.shape != steps.shape or nod.shape != steps.shape:
+            raise ParameterError("capture.ranges_m/nod_rad", f"shapes {r.shape}, {nod.shape}",
+                                 f"the shape of steps, {steps.shape}")
+        object.__setattr__(self, "steps", steps.astype(int))
+        object.__setattr__(self, "ranges_m", r)
+        object.__setattr__(self, "nod_rad", nod)
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+
+@dataclass(frozen=True, eq=False)
+class Plane:
+    """A plane fitted to points: ``{p : (p - point) . normal = 0}``.
+
+    ``normal`` points away from the sensor origin (``point . normal > 0``), so a positive
+    signed distance means "behind the wall".
+
+    Attributes
+    ----------
+    point : (3,) float
+        Centroid of the inliers [m].
+    normal : (3,) float
+        Unit normal.
+    rms_m : float
+        RMS distance of the inliers to the plane [m].
+    inliers : (n,) bool
+        Which of the input points were kept.
+    """
+
+    point: np.ndarray
+    normal: np.ndarray
+    rms_m: float
+    inliers: np.ndarray
+
+    @property
+    def offset_m(self) -> float:
+        """Distance of the plane from the origin [m] (``point . normal``)."""
+        return float(self.point @ self.normal)
+
+    def signed_distance(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance [m] of ``points`` ``(n, 3)`` to the plane, ``(n,)``."""
+        return np.asarray(points, dtype=float) @ self.normal - self.offset_m
+
+
+def _pca(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    c = points.mean(axis=0)
+    # the right singular vector of the smallest singular value is the plane normal
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    return c, vt[-1]
+
+
+def fit_plane(points: np.ndarray, *, mad_k: float = 4.0, max_iter: int = 20,
+              min_points: int = 20, name: str = "capture") -> Plane:
+    """PCA plane fit with iterative outlier trimming.
+
+    Fit by PCA, then drop points further than ``mad_k`` robust sigmas (1.4826 MAD of the
+    signed distances) and refit, until the inlier set stops changing.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Points [m]; rows with NaN are ignored.
+    mad_k : float
+        Rejection threshold in robust sigmas.
+    max_iter : int
+        Maximum number of trimming rounds.
+    min_points : int
+        Refuse fewer finite points than this.
+    name : str
+        Capture name for error messages.
+
+    Raises
+    ------
+    CalibrationError
+        Too few points.
+    """
+    p = np.asarray(points, dtype=float)
+    finite = np.all(np.isfinite(p), axis=1)
+    if finite.sum() < min_points:
+        raise CalibrationError(f"{name}: only {int(finite.sum())} direct-beam points on the wall; "
+                               f"a plane fit needs at least {min_points}")
+    keep = finite.copy()
+    for _ in range(max_iter):
+        c, n = _pca(p[keep])
+        dist = np.where(finite, (np.where(finite[:, None], p, 0.0) - c) @ n, np.inf)
+        med = np.median(dist[keep])
+        mad = 1.4826 * np.median(np.abs(dist[keep] - med))
+        # floor the scale at 0.1 mm so noise-free data does not reject rounding error
+        new = finite & (np.abs(dist - med) <= mad_k * max(mad, 1e-4))
+        if new.sum() < min_points:
+            raise CalibrationError(f"{name}: fewer than {min_points} direct-beam points are "
+                                   f"consistent with one plane; is the wall flat and in view?")
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    c, n = _pca(p[keep])
+    if c @ n < 0:
+        n = -n
+    rms = float(np.sqrt(np.mean(((p[keep] - c) @ n) ** 2)))
+    return Plane(point=c, normal=n, rms_m=rms, inliers=keep)
+
+
+def check_wall_orientations(planes: list[Plane], names: list[str], *, min_walls: int = 3,
+                            min_angle_rad: float = np.radians(10.0)) -> int:
+    """Refuse captures that do not show ``min_walls`` mutually non-parallel wall planes.
+
+    Planes whose normals are within ``min_angle_rad`` of each other count as one
+    orientation (greedy grouping). Returns the number of distinct orientations.
+
+    Raises
+    ------
+    CalibrationError
+        Naming the captures and the angles between their walls.
+    """
+    if len(planes) < min_walls:
+        raise CalibrationError(f"{len(planes)} wall capture(s) given; calibration needs at least "
+                               f"{min_walls} captures of the wall at different orientations")
+    reps: list[np.ndarray] = []
+    for pl in planes:
+        if all(np.arccos(min(1.0, abs(float(pl.normal @ r)))) >= min_angle_rad for r in reps):
+            reps.append(pl.normal)
+    if len(reps) < min_walls:
+        pairs = []
+        for i in range(len(planes)):
+            for j in range(i + 1, len(planes)):
+                a = np.degrees(np.arccos(min(1.0, abs(float(planes[i].normal @ planes[j].normal)))))
+                pairs.append(f"{names[i]}/{names[j]} {a:.1f} deg")
+        raise CalibrationError(
+            f"the walls are not mutually non-parallel: only {len(reps)} distinct orientation(s) "
+            f"among {len(planes)} captures (angles between wall normals: {', '.join(pairs)}); "
+            f"need {min_walls} with at least {np.degrees(min_angle_rad):.1f} deg between each pair")
+    return len(reps)
