@@ -15,7 +15,8 @@ import numpy as np
 
 from ..errors import CalibrationError, ParameterError
 
-__all__ = ["WallCapture", "Plane", "fit_plane", "check_wall_orientations"]
+__all__ = ["WallCapture", "Plane", "fit_plane", "check_wall_orientations", "save_capture",
+           "load_capture"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,3 +183,29 @@ def check_wall_orientations(planes: list[Plane], names: list[str], *, min_walls:
             f"among {len(planes)} captures (angles between wall normals: {', '.join(pairs)}); "
             f"need {min_walls} with at least {np.degrees(min_angle_rad):.1f} deg between each pair")
     return len(reps)
+
+
+def save_capture(path, capture: WallCapture) -> None:
+    """Write a capture as ``.npz`` (steps, ranges_m, nod_rad, mirrors_deployed, name)."""
+    np.savez_compressed(path, steps=capture.steps, ranges_m=capture.ranges_m,
+                        nod_rad=capture.nod_rad, mirrors_deployed=capture.mirrors_deployed,
+                        name=capture.name)
+
+
+def load_capture(path) -> WallCapture:
+    """Read a capture written by :func:`save_capture`."""
+    from pathlib import Path
+
+    from ..errors import DesignFileError
+
+    p = Path(path)
+    if not p.is_file():
+        raise DesignFileError(f"wall capture not found: {p}")
+    try:
+        with np.load(p) as z:
+            return WallCapture(steps=z["steps"], ranges_m=z["ranges_m"], nod_rad=z["nod_rad"],
+                               mirrors_deployed=bool(z["mirrors_deployed"]),
+                               name=str(z["name"]) or p.stem)
+    except (KeyError, ValueError, OSError) as exc:
+        raise DesignFileError(f"{p}: not a wall capture (.npz with steps, ranges_m, nod_rad): "
+                              f"{exc}") from None
