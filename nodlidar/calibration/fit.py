@@ -16,7 +16,9 @@ beams on the walls fitted from the direct beams::
   as eq. 7 writes them; the right side by mirror symmetry), then nodded. Kept for
   comparison; docs/paper-reproduction.md explains why it cannot fit.
 
-Uncertainty: ``cov = s^2 (J^T J)^-1`` at the solution with ``s^2 = sum(res^2)/(n - 3)``.
+Uncertainty: ``cov = s^2 (J^T J)^-1`` at the solution with ``s^2 = sum(res^2)/(n - 3)``
+(``sigma_fit``), plus the wall planes' covariance propagated through the fit (``sigma``):
+the planes come from noisy direct beams too, and for dalpha that term dominates.
 Degenerate data is refused (:class:`~nodlidar.errors.CalibrationError`): fewer than three
 wall orientations, too few reflected points on a mirror, an ill-conditioned ``J^T J``.
 
@@ -33,6 +35,7 @@ The ``[calibration]`` table of a design file (all keys optional)::
     band_m = 0.0225             # the paper's +-2.25 cm band in the residual statistics
     plane_mad_k = 4.0           # plane-fit outlier threshold [robust sigmas]
     outlier_mad_k = 5.0         # reflected-point outlier threshold after the first fit
+    min_nod_span_rad = 0.1      # nod range a mirror's beams must cover (dbeta observability)
 """
 
 from __future__ import annotations
@@ -72,6 +75,7 @@ class CalibrationConfig:
     band_m: float = 0.0225
     plane_mad_k: float = 4.0
     outlier_mad_k: float = 5.0
+    min_nod_span_rad: float = 0.1
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -149,7 +153,11 @@ class MirrorFit:
     perturbation : Perturbation
         The fitted mounting error.
     sigma : (3,) float
-        1-sigma of (dalpha [rad], dbeta [rad], dd [m]) from the Jacobian.
+        1-sigma of (dalpha [rad], dbeta [rad], dd [m]): the Jacobian's ``sigma_fit`` plus
+        the wall planes' own uncertainty propagated through the fit.
+    sigma_fit : (3,) float
+        1-sigma from the Jacobian alone, ``sqrt(diag(s^2 (J^T J)^-1))`` (the planes taken
+        as exact).
     before, after : ResidualStats
         Residuals of the used points with no perturbation / the fitted one.
     capture : (n,) int
@@ -171,6 +179,7 @@ class MirrorFit:
     name: str
     perturbation: Perturbation
     sigma: np.ndarray
+    sigma_fit: np.ndarray
     before: ResidualStats
     after: ResidualStats
     capture: np.ndarray
@@ -186,7 +195,8 @@ class MirrorFit:
         p = self.perturbation
         return {"name": self.name, "dalpha_rad": p.dalpha, "dbeta_rad": p.dbeta, "dd_m": p.dd,
                 "sigma_dalpha_rad": float(self.sigma[0]), "sigma_dbeta_rad": float(self.sigma[1]),
-                "sigma_dd_m": float(self.sigma[2]), "n_points": int(self.used.size),
+                "sigma_dd_m": float(self.sigma[2]),
+                "sigma_fit": [float(v) for v in self.sigma_fit], "n_points": int(self.used.size),
                 "n_used": int(self.used.sum()), "before": self.before.to_dict(),
                 "after": self.after.to_dict(), "condition": self.condition,
                 "at_bound": list(self.at_bound), "nfev": self.nfev}
@@ -301,7 +311,8 @@ def _scaled_condition(J: np.ndarray) -> float:
     return float((s[0] / s[-1]) ** 2) if s[-1] > 0 else math.inf
 
 
-def _fit_mirror(prob: _MirrorProblem, config: CalibrationConfig, x0: np.ndarray) -> MirrorFit:
+def _fit_mirror(prob: _MirrorProblem, config: CalibrationConfig, x0: np.ndarray,
+                capture: np.ndarray, planes: list[Plane]) -> MirrorFit:
     lo, hi = config.bounds
     n = prob.ranges.size
     used = np.ones(n, dtype=bool)
@@ -309,9 +320,9 @@ def _fit_mirror(prob: _MirrorProblem, config: CalibrationConfig, x0: np.ndarray)
     x = np.clip(x0, lo * 0.999, hi * 0.999)
     nfev = 0
     for _ in range(4):
-        sub = prob.subset(used)
-        sol = least_squares(sub.residuals, x, bounds=(lo, hi), method="trf", x_scale="jac",
-                            xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+        fit_mask = used
+        sol = least_squares(prob.subset(fit_mask).residuals, x, bounds=(lo, hi), method="trf",
+                            x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
         x, nfev = sol.x, nfev + sol.nfev
         res = prob.residuals(x)
         # after the first fit, drop points that no mirror pose explains (beams clipped by
@@ -325,6 +336,7 @@ def _fit_mirror(prob: _MirrorProblem, config: CalibrationConfig, x0: np.ndarray)
         if np.array_equal(new, used):
             break
         used = new
+    used = fit_mask  # the points of the last fit (its Jacobian and residuals)
     J = sol.jac
     cond = _scaled_condition(J)
     if not cond <= config.max_condition:
@@ -335,15 +347,27 @@ def _fit_mirror(prob: _MirrorProblem, config: CalibrationConfig, x0: np.ndarray)
             f"and with the head nodding")
     dof = max(1, int(used.sum()) - 3)
     s2 = float(np.sum(sol.fun**2) / dof)
-    cov = s2 * np.linalg.inv(J.T @ J)
-    sigma = np.sqrt(np.diag(cov))
+    JtJ_inv = np.linalg.inv(J.T @ J)
+    cov_fit = s2 * JtJ_inv
+    # the walls are estimates too: propagate each plane's covariance through the fit,
+    # dx/dtheta_k = -(J^T J)^-1 J^T G_k (G_k: d residual / d plane k, zero off capture k)
+    pts = prob.points(x)
+    cov_planes = np.zeros((3, 3))
+    kk = capture[used]
+    for k, pl in enumerate(planes):
+        sel = kk == k
+        if np.any(sel):
+            H = -JtJ_inv @ (J[sel].T @ pl.distance_jacobian(pts[used][sel]))
+            cov_planes += H @ pl.cov @ H.T
     at_bound = tuple(p for p, v, a, b in zip(PARAMS, x, lo, hi)
                      if abs(v - a) < 1e-6 * (b - a) or abs(v - b) < 1e-6 * (b - a))
-    return MirrorFit(name=prob.sol.name, perturbation=Perturbation.from_array(x), sigma=sigma,
+    return MirrorFit(name=prob.sol.name, perturbation=Perturbation.from_array(x),
+                     sigma=np.sqrt(np.diag(cov_fit + cov_planes)),
+                     sigma_fit=np.sqrt(np.diag(cov_fit)),
                      before=ResidualStats.of(r0[used], config.band_m),
                      after=ResidualStats.of(res[used], config.band_m),
-                     capture=np.empty(0, int), residual_before=r0, residual_after=res,
-                     points_after=prob.points(x), used=used, condition=cond,
+                     capture=capture, residual_before=r0, residual_after=res,
+                     points_after=pts, used=used, condition=cond,
                      at_bound=at_bound, nfev=nfev)
 
 
@@ -398,13 +422,19 @@ def calibrate(design, captures: list[WallCapture], *, model: str = "exact",
                                    f"need at least {int(config.min_points)} (are the mirrors deployed "
                                    "and is the wall in front of the sensor?)")
         steps, ranges, nod = (np.concatenate([p[i] for p in parts]) for i in (1, 2, 3))
+        span = float(np.ptp(nod))
+        if span < config.min_nod_span_rad:
+            # without nodding a tilted beam meets a vertical wall at a range change of
+            # order dbeta^2: the sign of dbeta is lost and the fit finds a mirror image
+            raise CalibrationError(
+                f"mirror {name}: its reflected beams cover a nod range of only {span:.3g} rad; "
+                f"the tilt dbeta is observable only with the head nodding (need >= "
+                f"{config.min_nod_span_rad:g} rad)")
         kidx = np.concatenate([np.full(p[1].size, p[0]) for p in parts])
         normals = np.concatenate([np.broadcast_to(p[4].normal, (p[1].size, 3)) for p in parts])
         offsets = np.concatenate([np.full(p[1].size, p[4].offset_m) for p in parts])
         prob = _MirrorProblem(design, name, steps, ranges, nod, normals, offsets, model)
         start = (x0 or {}).get(name, Perturbation()).as_array()
-        fit = _fit_mirror(prob, config, start)
-        object.__setattr__(fit, "capture", kidx)
-        out[name] = fit
+        out[name] = _fit_mirror(prob, config, start, kidx, [c.plane for c in fits])
     return CalibrationResult(design_name=design.spec.name, design_hash=design_hash(design.spec),
                              model=model, captures=tuple(fits), mirrors=out)

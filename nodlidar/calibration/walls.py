@@ -9,7 +9,7 @@ against which the reflected beams are calibrated.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -78,12 +78,25 @@ class Plane:
         RMS distance of the inliers to the plane [m].
     inliers : (n,) bool
         Which of the input points were kept.
+    tangents : (2, 3) float
+        Two unit in-plane directions (the principal axes).
+    cov : (3, 3) float
+        Covariance of the plane's small-motion parameters ``(ta, tb, dc)``: the normal
+        tilts to ``normal + ta*tangents[0] + tb*tangents[1]`` and the plane moves by ``dc``
+        along it; :meth:`distance_jacobian` gives how a point's signed distance changes.
     """
 
     point: np.ndarray
     normal: np.ndarray
     rms_m: float
     inliers: np.ndarray
+    tangents: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
+    cov: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+
+    def distance_jacobian(self, points: np.ndarray) -> np.ndarray:
+        """d(signed distance)/d(ta, tb, dc) of ``points`` (n, 3) -> (n, 3)."""
+        q = np.asarray(points, dtype=float) - self.point
+        return np.stack([q @ self.tangents[0], q @ self.tangents[1], -np.ones(len(q))], -1)
 
     @property
     def offset_m(self) -> float:
@@ -103,7 +116,7 @@ def _pca(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_plane(points: np.ndarray, *, mad_k: float = 4.0, max_iter: int = 20,
-              min_points: int = 20, name: str = "capture") -> Plane:
+              min_points: int = 20, min_spread: float = 0.02, name: str = "capture") -> Plane:
     """PCA plane fit with iterative outlier trimming.
 
     Fit by PCA, then drop points further than ``mad_k`` robust sigmas (1.4826 MAD of the
@@ -119,13 +132,16 @@ def fit_plane(points: np.ndarray, *, mad_k: float = 4.0, max_iter: int = 20,
         Maximum number of trimming rounds.
     min_points : int
         Refuse fewer finite points than this.
+    min_spread : float
+        Refuse points whose second principal spread is below this fraction of the first
+        (collinear points do not define a plane).
     name : str
         Capture name for error messages.
 
     Raises
     ------
     CalibrationError
-        Too few points.
+        Too few points, or points on a line.
     """
     p = np.asarray(points, dtype=float)
     finite = np.all(np.isfinite(p), axis=1)
@@ -147,10 +163,22 @@ def fit_plane(points: np.ndarray, *, mad_k: float = 4.0, max_iter: int = 20,
             break
         keep = new
     c, n = _pca(p[keep])
+    sv = np.linalg.svd(p[keep] - c, compute_uv=False)
+    # points on a line (a capture without nodding) leave the plane's tilt about that line free
+    if sv[1] < min_spread * sv[0]:
+        raise CalibrationError(f"{name}: the direct-beam points lie almost on a line (spread ratio "
+                               f"{sv[1] / sv[0]:.3g} < {min_spread}); a wall plane needs the head to "
+                               "nod during the capture")
     if c @ n < 0:
         n = -n
     rms = float(np.sqrt(np.mean(((p[keep] - c) @ n) ** 2)))
-    return Plane(point=c, normal=n, rms_m=rms, inliers=keep)
+    _, _, vt = np.linalg.svd(p[keep] - c, full_matrices=False)
+    pl = Plane(point=c, normal=n, rms_m=rms, inliers=keep, tangents=vt[:2])
+    # least-squares covariance of the plane parameters from its own residual scatter
+    A = pl.distance_jacobian(p[keep])
+    s2 = rms**2 * len(A) / max(1, len(A) - 3)
+    object.__setattr__(pl, "cov", s2 * np.linalg.inv(A.T @ A))
+    return pl
 
 
 def check_wall_orientations(planes: list[Plane], names: list[str], *, min_walls: int = 3,

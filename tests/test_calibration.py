@@ -1,0 +1,304 @@
+"""Mirror calibration against walls (paper Section IV, issue 7).
+
+Ground truth: the paper's Table I perturbations. Data: the simulated sensor (an
+independent embree ray tracer with the mirrors as finite geometry and the URG noise model)
+for the accuracy claims; the closed-form synthetic generator (same BeamModel as the fit)
+for noise-free recovery and the fast seed-scatter check.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from nodlidar.calibration.calfile import (
+    calibration_from_result,
+    load_calibration,
+    read_calibration,
+    write_calibration,
+)
+from nodlidar.calibration.fit import CalibrationConfig, calibrate, calibration_config, design_hash
+from nodlidar.calibration.synthetic import (
+    DEFAULT_WALLS,
+    WallPose,
+    simulated_captures,
+    synthetic_captures,
+)
+from nodlidar.calibration.walls import WallCapture, fit_plane, load_capture, save_capture
+from nodlidar.cli import main
+from nodlidar.errors import CalibrationError, ParameterError
+from nodlidar.geometry import Perturbation
+from nodlidar.paper import TABLE_I_PERTURBATIONS
+from nodlidar.solver import solve
+from nodlidar.spec import load_design
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = ROOT / "design" / "urg04lx-paper.toml"
+OPTIMAL = ROOT / "design" / "urg04lx-optimal.toml"
+TRUTH = dict(TABLE_I_PERTURBATIONS)
+
+
+@pytest.fixture(scope="module")
+def design():
+    return solve(load_design(PAPER))
+
+
+@pytest.fixture(scope="module")
+def sim_result(design):
+    caps = simulated_captures(design, TRUTH, seed=0)
+    return caps, calibrate(design, caps)
+
+
+def _err(result):
+    return {n: m.perturbation.as_array() - TRUTH[n].as_array() for n, m in result.mirrors.items()}
+
+
+# -- plane fit ------------------------------------------------------------------------
+
+
+def test_plane_fit_recovers_a_known_plane_despite_outliers():
+    rng = np.random.default_rng(1)
+    n_true = np.array([np.cos(0.3), np.sin(0.3), 0.1])
+    n_true /= np.linalg.norm(n_true)
+    a = np.cross([0, 0, 1.0], n_true)
+    a /= np.linalg.norm(a)
+    b = np.cross(n_true, a)
+    uv = rng.uniform(-1, 1, (3000, 2))
+    p = 1.5 * n_true + uv[:, :1] * a + 0.4 * uv[:, 1:] * b + rng.normal(0, 0.01, (3000, 1)) * n_true
+    p[:300] -= 0.3 * n_true  # 10 % of points on something in front of the wall
+    pl = fit_plane(p)
+    # 2700 points with 1 cm noise over a 2 x 0.8 m patch: normal to ~1e-3, offset to ~1 mm
+    assert_allclose(pl.normal, n_true, atol=2e-3)
+    assert_allclose(pl.offset_m, 1.5, atol=2e-3)
+    assert not pl.inliers[:300].any()
+    assert pl.inliers[300:].mean() > 0.99
+
+
+def test_plane_fit_refuses_collinear_and_too_few_points():
+    x = np.linspace(-1, 1, 200)
+    line = np.stack([np.ones_like(x), x, np.zeros_like(x)], -1)  # a scan without nodding
+    with pytest.raises(CalibrationError, match="line"):
+        fit_plane(line + np.random.default_rng(0).normal(0, 1e-3, line.shape))
+    with pytest.raises(CalibrationError, match="at least"):
+        fit_plane(line[:5])
+
+
+# -- recovery ---------------------------------------------------------------------------
+
+
+def test_noise_free_data_recovers_the_truth(design):
+    caps = synthetic_captures(design, TRUTH, noise=False, quantum_m=0.0)
+    res = calibrate(design, caps)
+    for name, m in res.mirrors.items():
+        # exact data and the exact model: only the solver's tolerance (xtol 1e-12) remains
+        assert_allclose(m.perturbation.as_array(), TRUTH[name].as_array(), atol=1e-6)
+        assert m.after.max_abs_m < 1e-6
+
+
+def test_simulated_sensor_table1_recovered(sim_result):
+    caps, res = sim_result
+    errs = _err(res)
+    for name, m in res.mirrors.items():
+        e = errs[name]
+        # the issue's target: 3 mrad / 1 mm (measured: < 0.5 mrad and < 0.35 mm, seed 0)
+        assert abs(e[0]) <= 3e-3 and abs(e[1]) <= 3e-3 and abs(e[2]) <= 1e-3, (name, e)
+        # and consistent with its own uncertainty (4 sigma: 12 parameters, none should
+        # exceed this by chance at 6e-5 each)
+        assert np.all(np.abs(e) <= 4 * m.sigma), (name, e, m.sigma)
+        assert not m.at_bound
+
+
+def test_points_inside_the_band_after_not_before(sim_result):
+    _, res = sim_result
+    n_in0 = n0 = 0
+    for name, m in res.mirrors.items():
+        # paper Fig. 9: +-2.25 cm. With sigma = 1 cm at the 1 m walls, a perfect fit puts
+        # ~97.6 % inside (perpendicular incidence; more for oblique), so >= 95 % is a real check
+        assert m.after.within_band >= 0.95, (name, m.after)
+        assert m.after.rms_m < 0.0125, (name, m.after)
+        assert m.before.rms_m > 1.5 * m.after.rms_m, (name, m.before, m.after)
+        n_in0 += m.before.within_band * m.before.n
+        n0 += m.before.n
+    # uncalibrated (design geometry), Table I puts most reflected points outside the band
+    assert n_in0 / n0 < 0.6
+
+
+def test_sigma_matches_the_scatter_over_seeds(design):
+    # 6 noise seeds x 4 mirrors: the error in units of the Jacobian sigma should have an
+    # RMS near 1 (24 samples per parameter: a +-35 % window is > 2.5 standard errors wide)
+    z = []
+    for seed in range(6):
+        res = calibrate(design, synthetic_captures(design, TRUTH, seed=100 + seed))
+        for name, e in _err(res).items():
+            z.append(e / res.mirrors[name].sigma)
+    rms = np.sqrt(np.mean(np.square(z), axis=0))
+    assert np.all((rms > 0.6) & (rms < 1.45)), rms
+
+
+def test_paper_model_cannot_fit(design, sim_result):
+    # Documented finding (docs/paper-reproduction.md): eqs 4-8 as printed misplace
+    # reflected points by decimetres, so fitting with them leaves decimetre residuals and
+    # parameters on the bounds while the exact model reaches the noise floor.
+    caps, exact = sim_result
+    paper = calibrate(design, caps, model="paper", config=CalibrationConfig(min_points=10))
+    for name in exact.mirrors:
+        assert paper.mirrors[name].after.rms_m > 10 * exact.mirrors[name].after.rms_m
+
+
+def test_calibrated_beam_model_puts_points_on_the_wall(design):
+    caps = synthetic_captures(design, TRUTH, noise=False, quantum_m=0.0)
+    res = calibrate(design, caps)
+    bm = design.beam_model(res.perturbations)
+    for wall, cap in zip(DEFAULT_WALLS, caps):
+        p = bm.points(cap.steps, cap.ranges_m, cap.nod_rad)
+        # round trip data -> fit -> runtime projection: back on the generating plane
+        assert_allclose(p @ wall.normal, wall.distance_m, atol=1e-6)
+
+
+# -- degenerate data ----------------------------------------------------------------------
+
+
+def test_refuses_fewer_than_three_walls(design):
+    caps = synthetic_captures(design, TRUTH)
+    with pytest.raises(CalibrationError, match="at least 3"):
+        calibrate(design, caps[:2])
+    with pytest.raises(CalibrationError, match="no wall captures"):
+        calibrate(design, [])
+
+
+def test_refuses_parallel_walls(design):
+    walls = [WallPose(0.8), WallPose(1.0), WallPose(1.2, np.radians(3))]
+    caps = synthetic_captures(design, TRUTH, walls)
+    with pytest.raises(CalibrationError, match="non-parallel"):
+        calibrate(design, caps)
+
+
+def test_refuses_too_few_reflected_points(design):
+    caps = synthetic_captures(design, TRUTH, mirrors_deployed=False)
+    with pytest.raises(CalibrationError, match="only 0 reflected points"):
+        calibrate(design, caps)
+
+
+def test_refuses_captures_without_nodding(design):
+    # planes from nodded direct beams, but the reflected beams all at nod 0: dbeta only
+    # enters as dbeta^2 and its sign is lost, so this must be refused, not "fitted"
+    bm = design.beam_model(TRUTH)
+    caps = []
+    for w, c in zip(DEFAULT_WALLS, synthetic_captures(design, TRUTH)):
+        refl = bm.mirror_index(c.steps) >= 0
+        nod = np.where(refl, 0.0, c.nod_rad)
+        start, d, off = bm.rays(c.steps, nod)
+        r = np.where(refl, off + ((w.point - start) @ w.normal) / (d @ w.normal), c.ranges_m)
+        caps.append(WallCapture(c.steps, r, nod))
+    with pytest.raises(CalibrationError, match="nod range"):
+        calibrate(design, caps)
+
+
+def test_refuses_ill_conditioned_fit(design):
+    caps = synthetic_captures(design, TRUTH)
+    # measured condition numbers are 1-3; a threshold below that must trigger the refusal
+    with pytest.raises(CalibrationError, match="ill-conditioned"):
+        calibrate(design, caps, config=CalibrationConfig(max_condition=0.5))
+
+
+def test_bound_hit_is_reported(design):
+    caps = synthetic_captures(design, TRUTH, noise=False, quantum_m=0.0)
+    res = calibrate(design, caps, config=CalibrationConfig(dd_bound_m=0.005), mirrors=["L1"])
+    assert res.mirrors["L1"].at_bound == ("dd",)  # truth dd = 10 mm > 5 mm bound
+
+
+def test_config_from_design_table():
+    cfg = calibration_config({"dd_bound_m": 0.02, "min_points": 50})
+    assert cfg.dd_bound_m == 0.02 and cfg.min_points == 50
+    with pytest.raises(ParameterError, match="calibration.dd_bound"):
+        calibration_config({"dd_bound": 0.02})
+    with pytest.raises(ParameterError, match="min_walls"):
+        calibration_config({"min_walls": 2})
+
+
+# -- files and CLI ------------------------------------------------------------------------
+
+
+def test_calibration_file_round_trip(design, sim_result, tmp_path):
+    _, res = sim_result
+    path = tmp_path / "cal.toml"
+    cal = write_calibration(path, res, source="test")
+    back = load_calibration(path, design)
+    assert back == cal  # floats survive TOML exactly (repr round trip)
+    assert back.id.startswith("cal-") and back.design_hash == design_hash(design.spec)
+    for name, p in res.perturbations.items():
+        assert back.perturbations[name] == p
+        assert_allclose(back.sigma[name], res.mirrors[name].sigma, rtol=0)
+    # the runtime's use: identical beam model from the file
+    a, b = design.beam_model(res.perturbations), design.beam_model(back.perturbations)
+    assert_allclose(a.dir1, b.dir1, rtol=0, atol=0)
+
+
+def test_file_for_another_design_is_refused(design, sim_result, tmp_path):
+    _, res = sim_result
+    path = tmp_path / "cal.toml"
+    write_calibration(path, res)
+    other = solve(load_design(OPTIMAL))
+    with pytest.raises(CalibrationError, match="urg04lx-optimal"):
+        load_calibration(path, other)
+    # the hash covers geometry only: renaming the design keeps the calibration valid
+    renamed = design.spec.replace(name="renamed", description="x")
+    assert design_hash(renamed) == design_hash(design.spec)
+    moved = design.spec.replace(**{"mirror.hinge_z_m": -0.02})
+    assert design_hash(moved) != design_hash(design.spec)
+
+
+def test_read_calibration_rejects_junk(tmp_path):
+    p = tmp_path / "x.toml"
+    p.write_text('name = "not a calibration"\n')
+    with pytest.raises(Exception, match="not a calibration file"):
+        read_calibration(p)
+
+
+def test_cli_json_on_simulated_sensor(capsys, tmp_path):
+    out = tmp_path / "cal.toml"
+    rc = main(["calibrate", "--sim", "--design", str(PAPER), "--json", "--out", str(out)])
+    assert rc == 0
+    data = json.loads(capsys.readouterr().out)
+    assert set(data["mirrors"]) == {"L1", "L2", "R1", "R2"}
+    for name, m in data["mirrors"].items():
+        t = TRUTH[name]
+        # same data as sim_result (seed 0): within the accuracy asserted above
+        assert abs(m["dalpha_rad"] - t.dalpha) < 3e-3 and abs(m["dd_m"] - t.dd) < 1e-3
+        assert m["sigma_dbeta_rad"] > 0 and m["after"]["within_band"] >= 0.95
+        assert m["before"]["rms_m"] > m["after"]["rms_m"]
+    assert read_calibration(out).id == data["id"]
+
+
+def test_cli_walls_from_capture_files(design, capsys, tmp_path):
+    paths = []
+    for k, cap in enumerate(synthetic_captures(design, TRUTH, seed=3)):
+        paths.append(str(tmp_path / f"wall{k}.npz"))
+        save_capture(paths[-1], cap)
+    back = load_capture(paths[0])
+    assert back.steps.dtype.kind == "i" and back.mirrors_deployed
+    png = tmp_path / "fig9.png"
+    rc = main(["calibrate", "--walls", *paths, "--design", str(PAPER), "--plot", str(png)])
+    assert rc == 0 and png.stat().st_size > 10_000
+    text = capsys.readouterr().out
+    assert "L1" in text and "R2" in text
+    rc = main(["calibrate", "--walls", *paths[:2], "--design", str(PAPER)])
+    assert rc == 2
+    assert "at least 3" in capsys.readouterr().err
+
+
+def test_perturbation_constant_is_table1():
+    # the recovery target is the paper's Table I (read off the paper, not the code)
+    assert TRUTH["L1"] == Perturbation(-0.043, 0.05, 0.01)
+    assert TRUTH["R2"] == Perturbation(0.03, -0.01, -0.005)
+
+
+def test_result_to_dict_is_json(sim_result):
+    _, res = sim_result
+    d = json.loads(json.dumps(res.to_dict()))
+    assert len(d["walls"]) == 3 and d["model"] == "exact"
+    assert calibration_from_result(res).perturbations == res.perturbations
