@@ -193,6 +193,7 @@ class SceneSimulator:
             self._face_part = np.zeros(0, dtype=int)
             self._static = None
         self._movers = [_MeshCaster(m.mesh()) for m in self.scene.movers]
+        self._head_cache: dict[tuple[float, float], tuple] = {}
 
     # -- pieces ------------------------------------------------------------------------
     def beam_times(self, t_scan_s: float, steps: np.ndarray | None = None) -> np.ndarray:
@@ -264,6 +265,24 @@ class SceneSimulator:
             last = np.where(ref, best_m, last)
         return o, d, off, first, bounces, alive
 
+    def _head_rays_cached(self, steps, lift_left, lift_right):
+        """:meth:`head_rays`, memoised for whole scans with a constant lift state (the usual
+        case: the head-frame paths then do not change from scan to scan)."""
+        fl, fr = np.asarray(lift_left, dtype=float), np.asarray(lift_right, dtype=float)
+        whole = np.array_equal(steps, self.lidar.steps)
+        if not (whole and np.ptp(fl) == 0 and np.ptp(fr) == 0):
+            return self.head_rays(steps, lift_left, lift_right)
+        key = (float(fl.flat[0]), float(fr.flat[0]))
+        hit = self._head_cache.get(key)
+        if hit is None:
+            hit = self.head_rays(steps, key[0], key[1])
+            for a in hit:
+                a.setflags(write=False)
+            if len(self._head_cache) > 64:  # a lift in progress makes many keys
+                self._head_cache.clear()
+            self._head_cache[key] = hit
+        return hit
+
     def to_world(self, p_head: np.ndarray, d_head: np.ndarray, nod_rad: np.ndarray,
                  t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Head-frame points/directions at per-row nod [rad] and time [s] -> world frame."""
@@ -324,7 +343,7 @@ class SceneSimulator:
         n = len(steps)
         t = self.beam_times(t_scan_s, steps)
         nod = np.broadcast_to(np.asarray(nod_rad, dtype=float), (n,)).astype(float)
-        o_h, d_h, off, first, bounces, alive = self.head_rays(steps, lift_left, lift_right)
+        o_h, d_h, off, first, bounces, alive = self._head_rays_cached(steps, lift_left, lift_right)
         o_w, d_w = self.to_world(o_h, d_h, nod, t)
         dist, obj, part = self.cast_world(o_w, d_w, t)
         hit = alive & np.isfinite(dist)
