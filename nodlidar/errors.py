@@ -49,6 +49,11 @@ class DeviceError(NodlidarError):
     """A device reported an error status or went away."""
 
 
+class CalibrationError(NodlidarError, ValueError):
+    """Calibration data cannot determine the mirrors (too few walls or points, parallel
+    walls, ill-conditioned fit) or a calibration file does not belong to the design."""
+
+
 def require(cond: bool, field: str, value: Any, allowed: str) -> None:
     """Raise :class:`ParameterError` unless ``cond`` holds."""
     if not cond:
