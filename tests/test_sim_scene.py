@@ -196,6 +196,27 @@ def test_per_beam_lift_state_equals_scans_at_each_state(design):
     assert len(np.unique(s.mirror[design.mirror_of_step >= 0])) > 2
 
 
+def test_nod_ramp_scans_and_moving_sensor(design):
+    """scans(): the design's nod ramp per beam; points projected with BeamModel at the
+    ramp's closed-form pitch land on the wall. A sensor driving at 1 m/s towards a wall sees
+    it nearer by 1 m/s times each beam's time."""
+    sim = SceneSimulator(design, wall_scene(2.0))
+    scans = sim.scans(12, noise=False)
+    nod_spec = design.spec.nod
+    bm = design.beam_model()
+    for s in scans:
+        ramp = nod_spec.pitch_min_rad + nod_spec.rate_rad_s * s.t_s  # first rising ramp (2 s)
+        assert_allclose(s.nod_rad, ramp, atol=1e-12)
+        same = (s.mirror == bm.mirror_of_step) & np.isfinite(s.range_m)
+        p = bm.points(s.steps[same], s.range_m[same], ramp[same])
+        assert same.sum() > 600 and np.max(np.abs(p[:, 0] - 2.0)) <= MM_TOL_M
+    moving = Scene("drive", wall_scene(2.0).statics, sensor=SensorPose((0, 0, 0), 0.0, (1.0, 0, 0)))
+    s = SceneSimulator(design, moving).scan(0.5, 0.0, 1.0, 1.0, noise=False)
+    front = s.steps == design.lidar.step_front
+    assert_allclose(s.true_range_m[front], 2.0 - 1.0 * s.t_s[front], atol=1e-9)
+    assert s.t_s[front][0] > 0.5 + 0.03  # step 384 is 37.5 ms after the timestamp
+
+
 def test_lift_fraction_maps_servo_angle():
     assert_allclose(lift_fraction([-0.1, 0.0, math.pi / 4, math.pi / 2, 2.0]),
                     [0.0, 0.0, 0.5, 1.0, 1.0], atol=1e-15)
@@ -374,6 +395,19 @@ velocity_m_s = [0.1, 0.0, 0.0]
         load_scene("nowhere")
 
 
+def test_scene_files_load(design):
+    from pathlib import Path
+
+    files = sorted((Path(__file__).resolve().parents[1] / "design" / "scenes").glob("*.toml"))
+    assert len(files) >= 2
+    for f in files:
+        sc = Scene.from_toml(f)
+        assert SceneSimulator(design, sc).scan(0.0, 0.0).range_m.shape == (design.lidar.n_steps,)
+    # the file form of the paper's scene is the built-in, number for number
+    assert Scene.from_toml(files[[f.stem for f in files].index("paper-tracking")]) == \
+        builtin_scene("paper-tracking")
+
+
 def test_builtin_scenes(design):
     tr = builtin_scene("paper-tracking")
     traj = tr.movers[0].trajectory
@@ -389,6 +423,17 @@ def test_builtin_scenes(design):
     s = SceneSimulator(design, tr).scan(0.0, 0.0, noise=False)
     assert np.sum((s.object_id == 1) & (s.mirror >= 0)) > 10
     assert np.sum((s.object_id == 1) & (s.mirror < 0)) > 5
-    room = SceneSimulator(design, "room").scan(0.0, 0.1)
+    room_sim = SceneSimulator(design, "room")
+    room = room_sim.scan(0.0, 0.0, 1.0, 1.0)
     assert np.all(np.isfinite(room.range_m))  # closed room: every beam returns
+    ahead = room.steps == design.lidar.step_front
+    # straight ahead (0.4 m up) is box2 (top at 0.5 m, yawed -30 deg around (4, -0.2))
+    box = room_sim.scene.statics[3]
+    assert room_sim.part_names[room.part[ahead][0]] == box.name == "box2"
+    c, s_ = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
+    q = room.point_world[ahead][0] - np.array(box.center_m)
+    local = np.array([c * q[0] + s_ * q[1], -s_ * q[0] + c * q[1], q[2]])
+    # the hit lies on the box surface: inside its extents, on one face
+    assert np.all(np.abs(local) <= np.array(box.size_m) / 2 + 1e-9)
+    assert np.isclose(np.abs(local) - np.array(box.size_m) / 2, 0.0, atol=1e-9).any()
     assert len(load_scene(None).statics) == len(builtin_scene("room").statics)

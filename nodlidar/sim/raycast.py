@@ -356,3 +356,38 @@ class SceneSimulator:
                          mirror=first, bounces=bounces, object_id=np.where(hit, obj, HIT_NONE),
                          part=np.where(hit, part, -1), point_world=pts,
                          range_min_m=self.lidar.range_min_m, range_max_m=self.lidar.range_max_m)
+
+    def scans(self, n_scans: int, *, t0_s: float = 0.0, nod=None,
+              lift_left: float = 0.0, lift_right: float = 0.0, noise: bool = True,
+              seed: int = 0) -> list[ScanTruth]:
+        """Simulate ``n_scans`` consecutive scans (the direct API, no emulators).
+
+        Parameters
+        ----------
+        n_scans : int
+        t0_s : float
+            Timestamp of the first scan [s]; scan ``k`` is stamped ``t0_s + k * period``.
+        nod : None, float or callable
+            Head pitch [rad]: ``None`` = the design's nod ramp (``NodSpec.pitch_at``, from
+            the lower limit at t = 0), a constant, or ``f(t_s (n,)) -> (n,)``.
+        lift_left, lift_right : float
+            Constant lift fractions (0 deployed, 1 lifted).
+        noise, seed : noise switch; scan ``k`` uses ``default_rng([seed, k])`` like
+            :class:`~nodlidar.sim.sensor.SimulatedSensor`.
+        """
+        period = self.lidar.scan_period_s
+        k0 = int(round(t0_s / period))
+        out = []
+        for i in range(int(n_scans)):
+            t_scan = t0_s + i * period
+            t = self.beam_times(t_scan)
+            if nod is None:
+                pitch = self.design.spec.nod.pitch_at(t)
+            elif callable(nod):
+                pitch = np.asarray(nod(t), dtype=float)
+            else:
+                pitch = float(nod)
+            rng = np.random.default_rng([int(seed), k0 + i]) if noise else None
+            out.append(self.scan(t_scan, pitch, lift_left, lift_right, noise=noise, rng=rng))
+        return out
+
