@@ -1,0 +1,321 @@
+"""Motion of a moving object: coarse estimate from centroids, refinement by entropy (eqs 11-13).
+
+Model: constant velocity ``v`` [m/s] along a constant heading ``phi`` [rad] (world frame,
+anticlockwise from +x) on the ground plane. Eq. 11 accumulates the object's scans in one
+reference time ``t_ref``: every point moves back along the motion by its own time,
+
+    q_i = p_i + v (t_ref - t_i) (cos phi, sin phi, 0)
+
+(``compensate``), using the per-beam time (each beam of a 100 ms scan has its own).
+
+Two sharpness measures of the accumulated cloud, both minimal when the motion is right:
+
+* ``"voxel"`` - the paper's eq. 12: binary occupancy entropy summed over the voxels the cloud
+  occupies, ``H = sum_v h(p_v)`` with ``h(p) = -p ln p - (1-p) ln(1-p)``. The paper leaves
+  ``p`` open; here ``p_v = n_v / (n_v + 1)`` from the voxel's point count ``n_v`` (one hit is
+  an even bet, many hits make the voxel surely occupied), so a blurred cloud spread over many
+  thinly filled voxels has more entropy than a sharp one. Piecewise constant in (v, phi):
+  minimised by grid search (coarse then fine) around the initial guess, taking the mean of
+  the tied minima.
+* ``"renyi"`` - Rényi's quadratic entropy of the cloud's Gaussian kernel density
+  (Sheehan, Harrison, Newman, IJRR 2012, the method the paper adapts):
+  ``H = -ln( 1/N^2 sum_ij exp(-|q_i - q_j|^2 / (4 sigma^2)) )``. Smooth: Nelder-Mead on
+  (vx, vy). Pairs are found once (cKDTree, within the kernel cutoff plus the largest motion
+  change the search can make), so one evaluation is a vectorised sum over a fixed pair list.
+
+Both are evaluated on the **ground-plane projection** by default (``plane=True``): the nod
+visits each height once per sweep, so within a sweep the 3D slices of different scans hardly
+overlap and 3D sharpness cannot tell one ground-plane motion from another (measured: Rényi in
+3D drifted to 0.3-0.6 m/s over the first sweep of the paper scenario); in the top view every
+scan's slice of an upright object overlaps the others. ``plane=False`` keeps 3D. The Rényi sum
+uses at most ``max_points`` points (evenly spaced in time order), which bounds one evaluation's
+cost as scans accumulate.
+
+The coarse estimate (paper Section V-B) is the least-squares line through the per-scan
+centroids projected on the ground plane against their mean times.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+from scipy.spatial import cKDTree
+
+from ..errors import require
+
+__all__ = ["MotionEstimate", "compensate", "coarse_motion", "voxel_entropy", "RenyiCost",
+           "refine_motion", "velocity_from_motion", "motion_from_velocity"]
+
+ENTROPIES = ("voxel", "renyi")
+
+
+@dataclass(frozen=True)
+class MotionEstimate:
+    """Constant-velocity motion on the ground plane.
+
+    Attributes
+    ----------
+    v_m_s : float
+        Speed [m/s] (>= 0).
+    heading_rad : float
+        Direction of motion, anticlockwise from world +x [rad], in (-pi, pi].
+    cov : (2, 2) float or None
+        Covariance of (vx, vy) [m^2/s^2] where available.
+    cost : float
+        Entropy at the estimate (nan for the coarse one).
+    n_points, n_scans : int
+    """
+
+    v_m_s: float
+    heading_rad: float
+    cov: np.ndarray | None = None
+    cost: float = float("nan")
+    n_points: int = 0
+    n_scans: int = 0
+
+    @property
+    def velocity(self) -> np.ndarray:
+        """(2,) ground-plane velocity [m/s]."""
+        return velocity_from_motion(self.v_m_s, self.heading_rad)
+
+
+def velocity_from_motion(v: float, heading: float) -> np.ndarray:
+    return np.array([v * np.cos(heading), v * np.sin(heading)])
+
+
+def motion_from_velocity(vel) -> tuple[float, float]:
+    vx, vy = float(vel[0]), float(vel[1])
+    return float(np.hypot(vx, vy)), float(np.arctan2(vy, vx))
+
+
+def compensate(points: np.ndarray, t_s: np.ndarray, velocity, t_ref_s: float) -> np.ndarray:
+    """Eq. 11: move each point back to ``t_ref_s`` along the ground-plane ``velocity``.
+
+    Parameters
+    ----------
+    points : (n, 3) float [m]
+    t_s : (n,) float
+        Per-point time [s].
+    velocity : (2,) float
+        (vx, vy) [m/s].
+    t_ref_s : float
+
+    Returns
+    -------
+    (n, 3) float
+    """
+    q = np.array(points, dtype=float, copy=True)
+    dt = t_ref_s - np.asarray(t_s, float)
+    q[:, 0] += velocity[0] * dt
+    q[:, 1] += velocity[1] * dt
+    return q
+
+
+def coarse_motion(centroids_xy: np.ndarray, t_s: np.ndarray) -> MotionEstimate:
+    """Least-squares constant-velocity line through per-scan centroids.
+
+    Parameters
+    ----------
+    centroids_xy : (k, 2) float
+        Ground-plane centroid of the object in each scan [m] (k >= 2).
+    t_s : (k,) float
+        Mean time of the object's points in each scan [s].
+    """
+    c = np.asarray(centroids_xy, float)
+    t = np.asarray(t_s, float)
+    require(len(c) >= 2, "centroids", len(c), ">= 2 scans")
+    tc = t - t.mean()
+    den = float(np.sum(tc ** 2))
+    require(den > 0, "t_s", t_s, "at least two different times")
+    vel = (tc @ (c - c.mean(axis=0))) / den
+    v, h = motion_from_velocity(vel)
+    return MotionEstimate(v, h, n_scans=len(c))
+
+
+def voxel_entropy(points: np.ndarray, voxel_m: float, plane: bool = True) -> float:
+    """Eq. 12 with ``p_v = n_v / (n_v + 1)`` (module docstring) [nats].
+
+    Parameters
+    ----------
+    points : (n, 3) float [m]
+    voxel_m : float
+        Voxel edge [m] (fine grained: of the order of the range noise).
+    plane : bool
+        Ground-plane projection (pixels in x, y) instead of 3D voxels.
+    """
+    pts = np.asarray(points)[:, :2] if plane else np.asarray(points)
+    ijk = np.floor(pts / voxel_m).astype(np.int64)
+    _, n = np.unique(ijk, axis=0, return_counts=True)
+    p = n / (n + 1.0)
+    return float(-np.sum(p * np.log(p) + (1 - p) * np.log1p(-p)))
+
+
+def _voxel_entropy_fast(q: np.ndarray, voxel_m: float, plane: bool = True) -> float:
+    """:func:`voxel_entropy` by one sort of packed integer keys (no np.unique over rows)."""
+    ijk = np.floor(q / voxel_m).astype(np.int64)
+    ijk -= ijk.min(axis=0)
+    dims = ijk.max(axis=0) + 1
+    key = ijk[:, 0] * dims[1] + ijk[:, 1]
+    if not plane:
+        key = key * dims[2] + ijk[:, 2]
+    key.sort()
+    brk = np.flatnonzero(np.diff(key)) + 1
+    n = np.diff(np.concatenate([[0], brk, [len(key)]])).astype(float)
+    p = n / (n + 1.0)
+    return float(-np.sum(p * np.log(p) + (1 - p) * np.log1p(-p)))
+
+
+class RenyiCost:
+    """Rényi quadratic entropy of the compensated cloud as a function of (vx, vy).
+
+    Parameters
+    ----------
+    points : (n, 3) float; t_s : (n,) float
+    t_ref_s : float
+    sigma_m : float
+        Kernel width [m] (of the order of the range noise).
+    center_velocity : (2,) float
+        The motion around which pairs are gathered [m/s].
+    max_dv_m_s : float
+        Largest change of velocity the evaluations will make from ``center_velocity``; pairs
+        are gathered within ``cutoff + max_dv * max |t_i - t_j|``.
+    cutoff_sigmas : float
+        Kernel truncation (5 sigma: exp(-25/4) = 0.2 % of the peak).
+    plane : bool
+        Ground-plane projection (z ignored).
+    max_points : int
+        At most this many points (evenly spaced in time order) enter the sum.
+    """
+
+    def __init__(self, points, t_s, t_ref_s: float, sigma_m: float, center_velocity,
+                 max_dv_m_s: float = 0.1, cutoff_sigmas: float = 5.0, plane: bool = True,
+                 max_points: int = 800) -> None:
+        p = np.asarray(points, float)
+        t = np.asarray(t_s, float)
+        if len(p) > max_points:
+            order = np.argsort(t, kind="stable")
+            sel = order[np.linspace(0, len(p) - 1, max_points).round().astype(int)]
+            p, t = p[sel], t[sel]
+        if plane:
+            p = np.column_stack([p[:, :2], np.zeros(len(p))])
+        self.n = len(p)
+        q = compensate(p, t, center_velocity, t_ref_s)
+        span = float(t.max() - t.min()) if len(t) else 0.0
+        r = cutoff_sigmas * sigma_m + max_dv_m_s * span
+        pairs = cKDTree(q).query_pairs(r, output_type="ndarray")
+        i, j = pairs[:, 0], pairs[:, 1]
+        # q_i - q_j at velocity w: (p_i - p_j) + w (t_j - t_i)... written around the centre
+        self.dq = (q[i] - q[j])
+        self.dt = (t[j] - t[i])  # compensation difference: d(q_i - q_j)/dw = (t_ref - t_i) - (t_ref - t_j)
+        self.c = np.asarray(center_velocity, float)
+        self.inv4s2 = 1.0 / (4.0 * sigma_m ** 2)
+
+    def __call__(self, velocity) -> float:
+        dw = np.asarray(velocity, float) - self.c
+        dx = self.dq[:, 0] + dw[0] * self.dt
+        dy = self.dq[:, 1] + dw[1] * self.dt
+        d2 = dx * dx + dy * dy + self.dq[:, 2] ** 2
+        s = self.n + 2.0 * np.sum(np.exp(-d2 * self.inv4s2))
+        return float(-np.log(s / self.n ** 2))
+
+
+def _hessian(f, x, h):
+    """Central-difference Hessian of scalar ``f`` at ``x`` (2,) with steps ``h`` (2,)."""
+    x = np.asarray(x, float)
+    H = np.zeros((2, 2))
+    f0 = f(x)
+    for a in range(2):
+        ea = np.zeros(2)
+        ea[a] = h[a]
+        H[a, a] = (f(x + ea) - 2 * f0 + f(x - ea)) / h[a] ** 2
+        for b in range(a + 1, 2):
+            eb = np.zeros(2)
+            eb[b] = h[b]
+            H[a, b] = H[b, a] = (f(x + ea + eb) - f(x + ea - eb) - f(x - ea + eb)
+                                 + f(x - ea - eb)) / (4 * h[a] * h[b])
+    return H
+
+
+def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
+                  entropy: str = "renyi", t_ref_s: float | None = None, sigma_m: float = 0.02,
+                  voxel_m: float = 0.03, search_m_s: float = 0.08, n_scans: int = 0,
+                  plane: bool = True, max_points: int = 800) -> MotionEstimate:
+    """Eq. 13: the motion whose compensated accumulation has the least entropy.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        The object's points over its scans, world frame [m].
+    t_s : (n,) float
+        Per-point time [s].
+    guess : MotionEstimate
+        Start (e.g. :func:`coarse_motion`).
+    entropy : {"voxel", "renyi"}
+    t_ref_s : float, optional
+        Reference time (default: the latest point's).
+    sigma_m : float
+        Rényi kernel width [m].
+    voxel_m : float
+        Voxel edge of eq. 12 [m].
+    search_m_s : float
+        Half width of the velocity search around the guess [m/s].
+    plane : bool
+        Entropy of the ground-plane projection (module docstring) or of the 3D cloud.
+    max_points : int
+        Rényi: at most this many points in the pair sum.
+
+    Returns
+    -------
+    MotionEstimate with ``cov`` from the inverse Hessian of the Rényi cost (scaled by the
+    residual entropy, a Laplace approximation) for ``"renyi"``; for ``"voxel"`` from the spread
+    of the tied grid minima (at least the fine grid's resolution).
+    """
+    require(entropy in ENTROPIES, "entropy", entropy, " or ".join(ENTROPIES))
+    p = np.asarray(points, float)
+    t = np.asarray(t_s, float)
+    require(len(p) >= 3, "points", len(p), ">= 3")
+    t_ref = float(t.max()) if t_ref_s is None else float(t_ref_s)
+    w0 = guess.velocity
+    if entropy == "renyi":
+        cost = RenyiCost(p, t, t_ref, sigma_m, w0, max_dv_m_s=search_m_s, plane=plane,
+                         max_points=max_points)
+        res = minimize(cost, w0, method="Nelder-Mead",
+                       options={"xatol": 1e-4, "fatol": 1e-7, "initial_simplex":
+                                [w0, w0 + [search_m_s / 4, 0], w0 + [0, search_m_s / 4]]})
+        w = res.x
+        if np.linalg.norm(w - w0) > search_m_s:  # left the region whose pairs were gathered
+            cost = RenyiCost(p, t, t_ref, sigma_m, w, max_dv_m_s=search_m_s, plane=plane,
+                             max_points=max_points)
+            res = minimize(cost, w, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-7})
+            w = res.x
+        H = _hessian(cost, w, np.array([2e-3, 2e-3]))
+        try:
+            cov = np.linalg.inv(H) if np.all(np.linalg.eigvalsh(H) > 0) else None
+        except np.linalg.LinAlgError:
+            cov = None
+        fval = float(res.fun)
+    else:
+        def f(wv):
+            return _voxel_entropy_fast(q_xy(wv), voxel_m, plane)
+
+        def q_xy(wv):
+            q = compensate(p, t, wv, t_ref)
+            return q[:, :2] if plane else q
+
+        centre = w0
+        cov = None
+        for half, n in ((search_m_s, 17), (search_m_s / 8, 9), (search_m_s / 64, 9)):
+            g = np.linspace(-half, half, n)
+            W = centre + np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+            vals = np.array([f(wv) for wv in W])
+            best = W[vals <= vals.min() + 1e-12]
+            centre = best.mean(axis=0)
+            fval = float(vals.min())
+            step = g[1] - g[0]
+        spread = np.cov(best.T) if len(best) > 2 else np.zeros((2, 2))
+        cov = spread + np.eye(2) * step ** 2 / 12.0
+        w = centre
+    v, h = motion_from_velocity(w)
+    return MotionEstimate(v, h, cov, fval, len(p), n_scans)
