@@ -134,6 +134,15 @@ class LidarModel:
         """Time from the SCIP timestamp (step 0) to the first valid step [s]."""
         return self.step_min * self.step_period_s
 
+    def beam_time_s(self, scan_time_s: np.ndarray | float, step: np.ndarray | int) -> np.ndarray:
+        """Time of each beam [s] given its scan's SCIP timestamp time (step 0) [s].
+
+        The one place the scan-time -> beam-time convention lives: ``scan_time_s`` refers to
+        step 0 (SPEC p.12), so a beam of step ``s`` is ``s * step_period_s`` later.
+        Broadcasts ``scan_time_s`` against ``step``.
+        """
+        return np.asarray(scan_time_s, dtype=float) + np.asarray(step, dtype=float) * self.step_period_s
+
     def range_sigma_m(self, range_m: np.ndarray | float) -> np.ndarray:
         """1-sigma range noise at ``range_m`` [m] per the spec's accuracy figure."""
         near, knee, rel = self.range_noise

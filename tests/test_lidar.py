@@ -58,3 +58,15 @@ def test_unknown_model_names_the_allowed_ones():
 def test_noise_model_follows_the_spec():
     m = lidar_model("URG-04LX")
     assert_allclose(m.range_sigma_m([0.5, 1.0, 4.0]), [0.01, 0.01, 0.04])
+
+
+def test_beam_time_refers_to_step_zero():
+    # SCIP stamps a scan at step 0: a beam is step * 60/(rpm*ARES) later; the first valid
+    # step is first_step_offset_s after the stamp (two ways to the same number)
+    from nodlidar.lidar import lidar_model
+
+    m = lidar_model("URG-04LX")
+    steps = np.array([m.step_min, m.step_front, m.step_max])
+    np.testing.assert_allclose(m.beam_time_s(2.0, steps),
+                               2.0 + m.first_step_offset_s + m.time_offset_from_step(steps), atol=1e-15)
+    np.testing.assert_allclose(m.beam_time_s(0.0, m.step_max), m.step_max * 0.1 / 1024, rtol=1e-12)
