@@ -129,14 +129,11 @@ def simulate_scans(design, n_scans: int, *, mirrors_deployed: bool = True,
     sim = simulator or SceneSimulator(design, scene, perturbations)
     bm = design.beam_model(perturbations, mirrors_deployed=mirrors_deployed)
     lift = 0.0 if mirrors_deployed else 1.0
-    period = design.lidar.scan_period_s
+    nod = None if t0_s == 0.0 else (lambda t: design.spec.nod.pitch_at(t, t0_s))
+    truths = sim.scans(n_scans, t0_s=t0_s, nod=nod, lift_left=lift, lift_right=lift, noise=noise,
+                       seed=seed)
     out = []
-    for k in range(n_scans):
-        t_scan = t0_s + k * period
-        t = sim.beam_times(t_scan)
-        nod = design.spec.nod.pitch_at(t, t0_s)
-        rng = np.random.default_rng([seed, k]) if noise else None
-        st = sim.scan(t_scan, nod, lift, lift, noise=noise, rng=rng)
+    for k, st in enumerate(truths):
         r = st.measured_m()
         out.append(project_scan(bm, k, st.steps, r, st.t_s, st.nod_rad, sim.scene.sensor,
                                 np.where(np.isfinite(r), st.object_id, -1)))
