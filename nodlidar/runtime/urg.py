@@ -101,7 +101,13 @@ class Scan:
 
 @dataclass
 class DriverStats:
-    """Counters (mutable; read them while streaming)."""
+    """Counters (mutable; read them while streaming).
+
+    ``dropped_scans`` counts the revolutions missing between consecutive delivered scans of
+    a stream (timestamp gaps, across reconnects too). Scans the device sent after the last
+    delivered one (still buffered when the stream stops) and scans lost before the first
+    one are not drops: they are outside what the consumer saw.
+    """
 
     scans: int = 0
     dropped_scans: int = 0
