@@ -241,7 +241,8 @@ def _hessian(f, x, h):
 def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
                   entropy: str = "renyi", t_ref_s: float | None = None, sigma_m: float = 0.02,
                   voxel_m: float = 0.03, search_m_s: float = 0.08, n_scans: int = 0,
-                  plane: bool = True, max_points: int = 800) -> MotionEstimate:
+                  plane: bool = True, max_points: int = 800,
+                  voxel_offsets: int = 1) -> MotionEstimate:
     """Eq. 13: the motion whose compensated accumulation has the least entropy.
 
     Parameters
@@ -265,6 +266,10 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         Entropy of the ground-plane projection (module docstring) or of the 3D cloud.
     max_points : int
         Rényi: at most this many points in the pair sum.
+    voxel_offsets : int
+        Voxel: average eq. 12 over this many grids shifted along the diagonal by
+        ``voxel_m / voxel_offsets`` (1 = the paper's single grid). Averaging shifted grids
+        makes the cost less sensitive to where the grid happens to cut the cloud.
 
     Returns
     -------
@@ -298,7 +303,9 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         fval = float(res.fun)
     else:
         def f(wv):
-            return _voxel_entropy_fast(q_xy(wv), voxel_m, plane)
+            q = q_xy(wv)
+            return sum(_voxel_entropy_fast(q + o * voxel_m / voxel_offsets, voxel_m, plane)
+                       for o in range(voxel_offsets)) / voxel_offsets
 
         def q_xy(wv):
             q = compensate(p, t, wv, t_ref)

@@ -215,7 +215,8 @@ def table_csv(rows: list[dict]) -> str:
 
 def plot_clouds(result: StudyResult):
     """Figs 10-12 analogue: motion-compensated accumulated object cloud, side (y-z) and top
-    (x-y) views, per configuration. Returns the figure."""
+    (x-y) views, per configuration; magenta direct, cyan mirror-reflected (as the paper's
+    Fig. 12). Returns the figure."""
     import matplotlib.pyplot as plt  # noqa: TID251 (lazy, inside a plot function)
 
     fig, axes = plt.subplots(len(result.configs), 2, figsize=(10, 3.2 * len(result.configs)),
@@ -224,11 +225,14 @@ def plot_clouds(result: StudyResult):
         if not c.cloud:
             continue
         q = c.cloud["points"]
-        sc = row[0].scatter(q[:, 1], q[:, 2], s=2, c=c.cloud["t"], cmap="viridis")
+        refl = c.cloud["mirror"] >= 0
+        for sel, col, lab in ((~refl, "magenta", "direct"), (refl, "c", "mirror-reflected")):
+            if sel.any():
+                row[0].scatter(q[sel, 1], q[sel, 2], s=2, color=col, label=lab)
+                row[1].scatter(q[sel, 0], q[sel, 1], s=2, color=col, label=lab)
         row[0].set(xlabel="y [m]", ylabel="z [m]", title=f"{c.label}: side view ({len(q)} points)")
-        row[1].scatter(q[:, 0], q[:, 1], s=2, c=c.cloud["t"], cmap="viridis")
         row[1].set(xlabel="x [m]", ylabel="y [m]", title=f"{c.label}: top view", aspect="equal")
-        fig.colorbar(sc, ax=row[1], label="t [s]")
+        row[1].legend(fontsize=7, markerscale=4)
     fig.tight_layout()
     return fig
 
