@@ -1,0 +1,426 @@
+"""3D assembly: scans + actuator samples + the design's BeamModels -> a point cloud.
+
+Pure functions over arrays, vectorised over every beam of many scans at once:
+
+* each beam's time is its scan's time (SCIP step 0) + its step offset
+  (:meth:`LidarModel.beam_time_s`, the one place that convention lives);
+* its nod angle is interpolated from the nod servo's timestamped samples;
+* the state of its mirror's side at that time (deployed / lifted / in between, from the
+  lift servo samples against :class:`MirrorLiftProfile`) decides whether the beam was
+  reflected: deployed -> the deployed :class:`BeamModel`, lifted -> the lifted one (the
+  beam goes straight), in between -> the point is dropped and counted (the glass was
+  moving; its geometry is unknown);
+* error codes (NaN ranges) are filtered out;
+* points are given in the sensor frame, or mapped to the robot frame with ``robot2sensor``
+  and the world frame with ``world2robot`` poses over time (per point by its own time).
+  Transforms are named ``A2B``: they map coordinates in frame B into frame A
+  (docs/conventions.md).
+
+Times are in whatever clock the scan times and the actuator samples share (the driver's
+``Scan.stamp_s`` after :meth:`UrgDriver.sync_clock` with the actuators' time source).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..beams import DIRECT, BeamModel
+from ..dynamixel import RAD_PER_TICK
+from ..errors import ParameterError, require
+from .actuators import MirrorLiftProfile, interpolate_angle
+
+if TYPE_CHECKING:
+    from ..geometry import Perturbation
+    from ..solver import Design
+
+__all__ = ["FRAMES", "PointCloud", "ScanBatch", "AngleSamples", "PoseTrack", "AssemblyModel",
+           "AssemblyStats", "assemble", "DEPLOYED", "LIFTED", "BETWEEN", "mirror_state"]
+
+FRAMES = ("sensor", "robot", "world")
+DEPLOYED, LIFTED, BETWEEN = 0, 1, 2
+
+# Default: within 3 servo ticks (4.6 mrad) of an end position counts as there, like
+# MirrorLift's arrival tolerance; a lift fraction of 0.3 % tilts a reflected beam by a few
+# mrad at most (2 x 0.003 x lift angle), below the URG's beam divergence.
+LIFT_TOLERANCE_RAD = 3 * RAD_PER_TICK
+
+
+@dataclass(frozen=True, eq=False)
+class PointCloud:
+    """Points with per-point provenance. All arrays have length ``n``.
+
+    Attributes
+    ----------
+    xyz : (n, 3) float
+        Points [m] in :attr:`frame`.
+    t : (n,) float
+        Time of each beam [s].
+    step : (n,) int
+        Lidar step.
+    mirror : (n,) int
+        Mirror index (into :attr:`mirror_names`) the beam reflected off, -1 direct.
+    scan : (n,) int
+        Index of the scan the point came from (in the assembled batch / recording).
+    range_m : (n,) float
+        Measured range (total path length) [m].
+    frame : str
+        ``"sensor"``, ``"robot"`` or ``"world"``.
+    design_name, design_hash : str
+        The design whose BeamModel made the points.
+    calibration_id : str
+        Calibration applied, ``"none"`` if none.
+    mirror_names : tuple of str
+    meta : dict
+        Extra counters (e.g. beams dropped while a mirror moved).
+    """
+
+    xyz: np.ndarray
+    t: np.ndarray
+    step: np.ndarray
+    mirror: np.ndarray
+    scan: np.ndarray
+    range_m: np.ndarray
+    frame: str = "sensor"
+    design_name: str = ""
+    design_hash: str = ""
+    calibration_id: str = "none"
+    mirror_names: tuple[str, ...] = ()
+    meta: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        n = len(self.t)
+        require(np.shape(self.xyz) == (n, 3), "cloud.xyz.shape", np.shape(self.xyz), f"({n}, 3)")
+        for name in ("step", "mirror", "scan", "range_m"):
+            a = getattr(self, name)
+            require(np.shape(a) == (n,), f"cloud.{name}.shape", np.shape(a), f"({n},)")
+        require(self.frame in FRAMES, "cloud.frame", self.frame, ", ".join(FRAMES))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def select(self, mask: np.ndarray) -> PointCloud:
+        """The points where ``mask`` (n,) bool (or an index array) holds."""
+        return PointCloud(self.xyz[mask], self.t[mask], self.step[mask], self.mirror[mask],
+                          self.scan[mask], self.range_m[mask], self.frame, self.design_name,
+                          self.design_hash, self.calibration_id, self.mirror_names, dict(self.meta))
+
+    def with_xyz(self, xyz: np.ndarray, frame: str) -> PointCloud:
+        """Same points expressed in another frame."""
+        return PointCloud(np.asarray(xyz, dtype=float), self.t, self.step, self.mirror, self.scan,
+                          self.range_m, frame, self.design_name, self.design_hash,
+                          self.calibration_id, self.mirror_names, dict(self.meta))
+
+
+@dataclass(frozen=True, eq=False)
+class ScanBatch:
+    """Many scans flattened into one set of beams.
+
+    Attributes
+    ----------
+    steps : (N,) int
+        Step of each value.
+    ranges_m : (N,) float
+        Range [m]; NaN = error code / no return.
+    scan : (N,) int
+        Index into :attr:`scan_time_s` of each value.
+    scan_time_s : (m,) float
+        Time of each scan's step 0 [s] (the SCIP timestamp convention).
+    """
+
+    steps: np.ndarray
+    ranges_m: np.ndarray
+    scan: np.ndarray
+    scan_time_s: np.ndarray
+
+    @classmethod
+    def from_arrays(cls, steps, ranges_m, scan_time_s) -> ScanBatch:
+        """From ``(m, n)`` ranges of ``m`` scans sharing the ``(n,)`` steps."""
+        r = np.atleast_2d(np.asarray(ranges_m, dtype=float))
+        st = np.asarray(steps)
+        ts = np.atleast_1d(np.asarray(scan_time_s, dtype=float))
+        require(r.shape[1:] == st.shape, "ranges_m.shape", r.shape, f"(m, {st.shape[0]})")
+        require(ts.shape == (r.shape[0],), "scan_time_s.shape", ts.shape, f"({r.shape[0]},)")
+        m, n = r.shape
+        return cls(np.tile(st, m), r.ravel(), np.repeat(np.arange(m), n), ts)
+
+    @classmethod
+    def from_scans(cls, scans: Sequence, times: Sequence[float] | None = None) -> ScanBatch:
+        """From driver :class:`~nodlidar.runtime.urg.Scan` objects (or anything with
+        ``steps``, ``ranges_m`` and ``stamp_s``); ``times`` [s] overrides the stamps."""
+        require(len(scans) > 0, "scans", "[]", "at least one scan")
+        ts = (np.array([s.stamp_s for s in scans], dtype=float) if times is None
+              else np.asarray(times, dtype=float))
+        require(ts.shape == (len(scans),), "times.shape", ts.shape, f"({len(scans)},)")
+        counts = [len(s.steps) for s in scans]
+        return cls(np.concatenate([np.asarray(s.steps) for s in scans]),
+                   np.concatenate([np.asarray(s.ranges_m, dtype=float) for s in scans]),
+                   np.repeat(np.arange(len(scans)), counts), ts)
+
+
+@dataclass(frozen=True, eq=False)
+class AngleSamples:
+    """Timestamped angle samples of one servo: ``t_s`` (k,) [s] increasing, ``angle_rad``
+    (k,) [rad]."""
+
+    t_s: np.ndarray
+    angle_rad: np.ndarray
+
+    @classmethod
+    def of(cls, samples) -> AngleSamples:
+        """From a :class:`~nodlidar.runtime.actuators.Samples` (host_time_s, angle_rad), a
+        ``(t, angle)`` pair, or an AngleSamples. Duplicate times (two READs in the same
+        clock tick) keep the first sample, so the times are strictly increasing."""
+        if isinstance(samples, AngleSamples):
+            return samples
+        if hasattr(samples, "host_time_s"):
+            t, a = samples.host_time_s, samples.angle_rad
+        else:
+            t, a = samples
+        t = np.asarray(t, dtype=float)
+        a = np.asarray(a, dtype=float)
+        require(t.shape == a.shape and t.ndim == 1, "samples.shape", (t.shape, a.shape),
+                "two (k,) arrays")
+        order = np.argsort(t, kind="stable")
+        t, a = t[order], a[order]
+        keep = np.concatenate([[True], np.diff(t) > 0]) if t.size else np.zeros(0, bool)
+        return cls(t[keep], a[keep])
+
+    def at(self, t, outside: str = "nan") -> np.ndarray:
+        """Linearly interpolated angle [rad] at times ``t`` [s]; NaN outside the samples."""
+        return interpolate_angle(self.t_s, self.angle_rad, t, outside=outside)
+
+
+@dataclass(frozen=True, eq=False)
+class PoseTrack:
+    """Robot poses over time: ``world2robot`` (k, 4, 4) at increasing ``t_s`` (k,) [s].
+
+    Interpolated per query time: translation linearly, rotation by slerp; clamped outside.
+    """
+
+    t_s: np.ndarray
+    world2robot: np.ndarray
+
+    def __post_init__(self) -> None:
+        t, T = np.asarray(self.t_s, float), np.asarray(self.world2robot, float)
+        require(T.ndim == 3 and T.shape[1:] == (4, 4) and t.shape == (T.shape[0],),
+                "poses.shape", (t.shape, T.shape), "(k,) times and (k, 4, 4) transforms")
+        require(t.size >= 1 and bool(np.all(np.diff(t) > 0)), "poses.t_s", "not increasing",
+                "strictly increasing times")
+
+    def at(self, t: np.ndarray) -> np.ndarray:
+        """``(n, 4, 4)`` world2robot at times ``t`` (n,) [s]."""
+        from scipy.spatial.transform import Rotation, Slerp
+
+        t = np.asarray(t, dtype=float)
+        T = np.asarray(self.world2robot, float)
+        ts = np.asarray(self.t_s, float)
+        out = np.zeros((t.size, 4, 4))
+        out[:, 3, 3] = 1.0
+        if ts.size == 1:
+            out[:] = T[0]
+            return out
+        tq = np.clip(t, ts[0], ts[-1])
+        out[:, :3, :3] = Slerp(ts, Rotation.from_matrix(T[:, :3, :3]))(tq).as_matrix()
+        for j in range(3):  # three columns, not a per-point loop
+            out[:, j, 3] = np.interp(tq, ts, T[:, j, 3])
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class AssemblyModel:
+    """What assembly needs from a design: the deployed and the lifted BeamModel (with the
+    calibration's perturbations, if any), each mirror's side, and the provenance.
+
+    Attributes
+    ----------
+    deployed, lifted : BeamModel
+    mirror_side : (n_mirrors,) int
+        0 for left ("L") mirrors, 1 for right ("R").
+    design_name, design_hash, calibration_id : str
+    """
+
+    deployed: BeamModel
+    lifted: BeamModel
+    mirror_side: np.ndarray
+    design_name: str
+    design_hash: str
+    calibration_id: str = "none"
+
+    @classmethod
+    def from_design(cls, design: Design,
+                    perturbations: Mapping[str, Perturbation] | None = None,
+                    calibration_id: str = "none") -> AssemblyModel:
+        """Build both BeamModels of a solved design (perturbed by a calibration)."""
+        from ..calibration.fit import design_hash
+
+        perts = dict(perturbations) if perturbations else None
+        side = np.array([0 if m.side == "L" else 1 for m in design.mirrors], dtype=int)
+        return cls(design.beam_model(perts, mirrors_deployed=True),
+                   design.beam_model(perts, mirrors_deployed=False), side, design.spec.name,
+                   design_hash(design.spec), calibration_id if perts else "none")
+
+    @property
+    def lidar(self):
+        return self.deployed.lidar
+
+
+@dataclass(frozen=True)
+class AssemblyStats:
+    """What assembly dropped, by reason (counts of beams)."""
+
+    beams: int = 0
+    error_codes: int = 0
+    no_nod: int = 0
+    mirror_moving: int = 0
+    points: int = 0
+
+
+def mirror_state(angle_rad: np.ndarray, profile: MirrorLiftProfile,
+                 tolerance_rad: float = LIFT_TOLERANCE_RAD) -> np.ndarray:
+    """DEPLOYED / LIFTED / BETWEEN of lift-servo angles [rad] (NaN -> BETWEEN: unknown)."""
+    a = np.asarray(angle_rad, dtype=float)
+    out = np.full(a.shape, BETWEEN, dtype=np.int8)
+    out[np.abs(a - profile.deployed_rad) <= tolerance_rad] = DEPLOYED
+    out[np.abs(a - profile.lifted_rad) <= tolerance_rad] = LIFTED
+    return out
+
+
+def _side_state(samples, t: np.ndarray, profile: MirrorLiftProfile, tol: float) -> np.ndarray:
+    if samples is None or isinstance(samples, str):
+        s = samples or "deployed"
+        require(s in ("deployed", "lifted"), "mirror state", s, "'deployed', 'lifted' or samples")
+        return np.full(t.shape, DEPLOYED if s == "deployed" else LIFTED, dtype=np.int8)
+    return mirror_state(AngleSamples.of(samples).at(t, "nan"), profile, tol)
+
+
+def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``T`` (4, 4) or (n, 4, 4) applied to points ``p`` (n, 3)."""
+    if T.ndim == 2:
+        return p @ T[:3, :3].T + T[:3, 3]
+    return np.einsum("nij,nj->ni", T[:, :3, :3], p) + T[:, :3, 3]
+
+
+def _check_transform(T, name: str) -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    require(T.shape == (4, 4) and np.allclose(T[3], [0, 0, 0, 1])
+            and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6),
+            name, T.shape, "a rigid 4x4 homogeneous transform")
+    return T
+
+
+def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
+             mirror_left=None, mirror_right=None,
+             lift_left: MirrorLiftProfile | None = None,
+             lift_right: MirrorLiftProfile | None = None,
+             lift_tolerance_rad: float = LIFT_TOLERANCE_RAD,
+             frame: str = "sensor", robot2sensor=None,
+             world2robot: PoseTrack | Callable[[np.ndarray], np.ndarray] | np.ndarray | None = None,
+             nod_outside: str = "nan") -> PointCloud:
+    """Assemble scans into a point cloud.
+
+    Parameters
+    ----------
+    model : AssemblyModel
+        BeamModels (deployed and lifted) of the design, calibration applied.
+    scans : ScanBatch
+        All beams of the scans, with each scan's step-0 time [s].
+    nod : AngleSamples, Samples, (t, angle) pair or float
+        Nod servo samples (head pitch [rad] at times [s]); a float is a fixed pitch.
+    mirror_left, mirror_right : samples, "deployed", "lifted" or None
+        Lift-servo samples of each side (None = deployed throughout).
+    lift_left, lift_right : MirrorLiftProfile
+        Deployed/lifted servo angles of each side (default ``MirrorLiftProfile()``).
+    lift_tolerance_rad : float
+        How close to an end angle counts as at it [rad].
+    frame : {"sensor", "robot", "world"}
+    robot2sensor : (4, 4) array
+        Maps sensor coordinates into the robot frame (needed for robot and world).
+    world2robot : PoseTrack, callable t (n,) -> (n, 4, 4), or (4, 4) array
+        Robot pose(s) (maps robot coordinates into the world), evaluated per point time.
+    nod_outside : {"nan", "clamp", "extrapolate"}
+        Beams outside the nod samples' time span: dropped (default), or given the end
+        sample's / extrapolated angle.
+
+    Returns
+    -------
+    PointCloud
+        Only valid points; ``meta`` holds the :class:`AssemblyStats` counts.
+    """
+    require(frame in FRAMES, "frame", frame, ", ".join(FRAMES))
+    if frame in ("robot", "world"):
+        require(robot2sensor is not None, "robot2sensor", None, f"a 4x4 transform for frame {frame!r}")
+        robot2sensor = _check_transform(robot2sensor, "robot2sensor")
+    if frame == "world":
+        require(world2robot is not None, "world2robot", None, "poses for frame 'world'")
+    lidar = model.lidar
+    steps = np.asarray(scans.steps)
+    r = np.asarray(scans.ranges_m, dtype=float)
+    n_beams = r.size
+    ok = np.isfinite(r) & (r > 0)
+    n_err = int(n_beams - ok.sum())
+    idx = np.flatnonzero(ok)
+    steps, r, scan_i = steps[idx], r[idx], np.asarray(scans.scan)[idx]
+    t = lidar.beam_time_s(np.asarray(scans.scan_time_s, float)[scan_i], steps)
+
+    if isinstance(nod, (int, float)):
+        nod_rad = np.full(t.shape, float(nod))
+    else:
+        nod_rad = AngleSamples.of(nod).at(t, nod_outside)
+    have_nod = np.isfinite(nod_rad)
+    n_no_nod = int((~have_nod).sum())
+
+    mirror = model.deployed.mirror_index(steps)
+    state = np.full(t.shape, DEPLOYED, dtype=np.int8)
+    refl = np.flatnonzero(mirror != DIRECT)
+    if refl.size:
+        tr = t[refl]
+        left = _side_state(mirror_left, tr, lift_left or MirrorLiftProfile(), lift_tolerance_rad)
+        right = _side_state(mirror_right, tr, lift_right or MirrorLiftProfile(), lift_tolerance_rad)
+        state[refl] = np.where(model.mirror_side[mirror[refl]] == 0, left, right)
+    moving = (state == BETWEEN) & have_nod
+    n_moving = int(moving.sum())
+    keep = have_nod & ~moving
+    steps, r, scan_i, t, nod_rad = steps[keep], r[keep], scan_i[keep], t[keep], nod_rad[keep]
+    mirror, state = mirror[keep], state[keep]
+
+    xyz = np.empty((len(r), 3))
+    lifted = state == LIFTED
+    if lifted.any():
+        xyz[lifted] = model.lifted.points(steps[lifted], r[lifted], nod_rad[lifted])
+        d = ~lifted
+        xyz[d] = model.deployed.points(steps[d], r[d], nod_rad[d])
+        mirror = np.where(lifted, DIRECT, mirror)
+    else:
+        xyz = model.deployed.points(steps, r, nod_rad)
+
+    if frame in ("robot", "world"):
+        xyz = _apply(robot2sensor, xyz)
+    if frame == "world":
+        if isinstance(world2robot, PoseTrack):
+            W = world2robot.at(t)
+        elif callable(world2robot):
+            W = np.asarray(world2robot(t), dtype=float)
+            if W.shape not in ((4, 4), (len(t), 4, 4)):
+                raise ParameterError("world2robot(t).shape", W.shape, f"(4, 4) or ({len(t)}, 4, 4)")
+        else:
+            W = _check_transform(world2robot, "world2robot")
+        xyz = _apply(W, xyz)
+
+    stats = AssemblyStats(beams=n_beams, error_codes=n_err, no_nod=n_no_nod,
+                          mirror_moving=n_moving, points=len(r))
+    return PointCloud(xyz, t, steps.astype(np.int32), mirror.astype(np.int16),
+                      scan_i.astype(np.int32), r, frame, model.design_name, model.design_hash,
+                      model.calibration_id, model.deployed.mirror_names, asdict(stats))
+
+
+def rot_y(angle: float) -> np.ndarray:
+    """4x4 rotation about +y by ``angle`` [rad] (helper for tests and examples)."""
+    c, s = math.cos(angle), math.sin(angle)
+    T = np.eye(4)
+    T[0, 0], T[0, 2], T[2, 0], T[2, 2] = c, s, -s, c
+    return T
