@@ -33,7 +33,7 @@ from .tracker import Tracker, TrackerConfig
 
 __all__ = ["table_markdown", "table_csv", "V_TOL_M_S", "HEADING_TOL_DEG", "count_traces",
            "convergence_index", "ConfigResult",
-           "StudyResult", "run_config", "run_study", "study_table", "plot_clouds",
+           "StudyResult", "plot_segmentation", "run_config", "run_study", "study_table", "plot_clouds",
            "plot_convergence"]
 
 V_TOL_M_S = 0.01
@@ -234,6 +234,27 @@ def plot_clouds(result: StudyResult):
         row[1].set(xlabel="x [m]", ylabel="y [m]", title=f"{c.label}: top view", aspect="equal")
         row[1].legend(fontsize=7, markerscale=4)
     fig.tight_layout()
+    return fig
+
+
+def plot_segmentation(seg):
+    """Top view of one segmented scan: static returns grey, dynamic (segmented) red, ground
+    truth object outlined where known. Returns the figure."""
+    import matplotlib.pyplot as plt  # noqa: TID251 (lazy, inside a plot function)
+
+    s = seg.scan
+    fig, ax = plt.subplots(figsize=(7, 5))
+    v = s.valid & ~seg.ground
+    ax.scatter(s.points[v, 0], s.points[v, 1], s=2, color="0.6", label="static")
+    if s.truth_id is not None:
+        t = s.truth_id >= 1
+        ax.scatter(s.points[t, 0], s.points[t, 1], s=30, facecolors="none", edgecolors="k",
+                   lw=0.5, label="object (truth)")
+    ax.scatter(s.points[seg.dynamic, 0], s.points[seg.dynamic, 1], s=6, color="r",
+               label="dynamic (segmented)")
+    ax.set(xlabel="x [m]", ylabel="y [m]", aspect="equal",
+           title=f"scan {s.scan}: top view (world frame)")
+    ax.legend(fontsize=7)
     return fig
 
 

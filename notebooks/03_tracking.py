@@ -1,0 +1,105 @@
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+# ---
+
+# %% [markdown]
+# # 03 - Tracking a moving object with and without the mirrors (paper Sections V-VI)
+#
+# The paper's scenario in simulation: the sensor (URG-04LX with the four mirrors of
+# `design/urg04lx-paper.toml`, nodding +-0.35 rad at 0.35 rad/s) on a robot, a cylinder
+# (r 0.18 m, 1 m tall) 2 m ahead moving at 0.13 m/s, heading 89.4 deg. The same run twice:
+# mirrors deployed, mirrors lifted.
+#
+# Pipeline (`nodlidar.tracking`): voxel map with free-space carving -> inconsistent
+# voxels -> dynamic clusters -> coarse motion from centroids -> entropy refinement
+# (eq. 11-13; the paper's voxel entropy and Rényi's quadratic entropy) -> tracks.
+#
+# "Converged" (not defined in the paper): the first scan, counted among the scans in which
+# the object was detected, from which every later estimate stays within 0.01 m/s and 2 deg
+# of the truth. Figures and the table go to `$NODLIDAR_OUT` (a temporary directory if
+# unset). Run: `MPLBACKEND=Agg python notebooks/03_tracking.py`; the same study from the
+# command line: `nodlidar study mirrors --out DIR`.
+
+# %%
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from nodlidar.solver import solve
+from nodlidar.spec import load_design
+from nodlidar.tracking import study
+from nodlidar.tracking.segment import SegmentConfig, segment_batch
+from nodlidar.tracking.simdata import simulate_scans
+
+ROOT = Path.cwd() if (Path.cwd() / "design").is_dir() else Path(__file__).resolve().parents[1]
+OUT = Path(os.environ.get("NODLIDAR_OUT") or tempfile.mkdtemp(prefix="nodlidar-nb03-"))
+OUT.mkdir(parents=True, exist_ok=True)
+design = solve(load_design(ROOT / "design" / "urg04lx-paper.toml"))
+
+# %% [markdown]
+# ## Segmentation of one scan
+#
+# Dynamic points are the clusters holding inconsistent points (space a ray crossed in one
+# scan and that returned a hit in another). Ground truth comes from the simulator.
+
+# %%
+scans = simulate_scans(design, 38, mirrors_deployed=True, seed=0)
+segs = segment_batch(scans, SegmentConfig(), design.lidar.range_sigma_m)
+s = segs[8]
+truth = s.scan.truth_id >= 1
+print(f"scan {s.scan.scan}: {int(s.scan.valid.sum())} returns, {int(truth.sum())} on the object, "
+      f"{int(s.dynamic.sum())} segmented dynamic ({int((s.dynamic & truth).sum())} correct)")
+
+fig = study.plot_segmentation(s)
+fig.savefig(OUT / "segmentation_scan.png", dpi=100)
+
+# %% [markdown]
+# ## The study: mirrors deployed vs lifted
+#
+# 38 scans as in the paper (each run ~5 s here).
+
+# %%
+t0 = time.perf_counter()
+res = study.run_study(design, n_scans=38, seed=0)
+rows = study.study_table(res)
+print(f"study: {time.perf_counter() - t0:.1f} s")
+md = study.table_markdown(rows)
+print(md)
+(OUT / "study_mirrors.md").write_text(md + "\n")
+(OUT / "study_mirrors.csv").write_text(study.table_csv(rows))
+
+# %% [markdown]
+# Paper: 13 of 38 scans saw the object, 28 traces with mirrors against 13 without;
+# convergence from scan 7 with mirrors, 9 without. Here the nod ramp covers the 1 m
+# cylinder in more scans, and with the mirrors each scan sees it through the direct window
+# and two reflected windows (3 traces a scan).
+
+# %%
+mir, nom = res.configs
+print(f"traces: mirrors {mir.traces_total}, no mirrors {nom.traces_total} in {mir.scans_seen} scans")
+print(f"points per scan on the object: mirrors {mir.points_total / mir.scans_seen:.1f}, "
+      f"no mirrors {nom.points_total / nom.scans_seen:.1f}")
+for ent in ("renyi", "voxel"):
+    print(f"{ent:6s} convergence (v, heading, both): mirrors {mir.convergence[ent]}, "
+          f"no mirrors {nom.convergence[ent]}")
+assert abs(mir.estimates["renyi"]["v"][-1] - 0.13) <= 0.01
+assert abs(mir.estimates["renyi"]["heading_deg"][-1] - 89.4) <= 2.0
+
+# %% [markdown]
+# ## Figures 10-13: accumulated motion-compensated cloud, convergence
+
+# %%
+study.plot_clouds(res).savefig(OUT / "fig10_12_accumulated_clouds.png", dpi=100)
+study.plot_convergence(res).savefig(OUT / "fig13_convergence.png", dpi=100)
+print(f"figures in {OUT}")
+print("final errors:", {c.label: {k: {q: round(x, 4) for q, x in e.items()}
+                                  for k, e in c.final_error.items()} for c in res.configs})
+assert np.isfinite(mir.estimates["renyi"]["v"][-1])
