@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..beams import DIRECT, BeamModel
+from ..beams import DIRECT, BeamModel  # noqa: F401  (BeamModel: type of fields)
 from ..dynamixel import RAD_PER_TICK
 from ..errors import ParameterError, require
 from .actuators import MirrorLiftProfile, interpolate_angle
@@ -241,12 +241,17 @@ class AssemblyModel:
     deployed, lifted : BeamModel
     mirror_side : (n_mirrors,) int
         0 for left ("L") mirrors, 1 for right ("R").
+    clear : (n_steps,) bool
+        Deployed: the step's path is clean (False: its reflected ray runs into another
+        mirror or the housing, so one reflection does not describe it; such points are
+        dropped and counted as ``blocked``).
     design_name, design_hash, calibration_id : str
     """
 
     deployed: BeamModel
     lifted: BeamModel
     mirror_side: np.ndarray
+    clear: np.ndarray
     design_name: str
     design_hash: str
     calibration_id: str = "none"
@@ -255,14 +260,25 @@ class AssemblyModel:
     def from_design(cls, design: Design,
                     perturbations: Mapping[str, Perturbation] | None = None,
                     calibration_id: str = "none") -> AssemblyModel:
-        """Build both BeamModels of a solved design (perturbed by a calibration)."""
+        """Build both BeamModels of a solved design (perturbed by a calibration).
+
+        With perturbations, which mirror each beam reaches is re-traced through the
+        perturbed finite patches (:func:`nodlidar.verify.verify`, first hit): a mirror
+        turned by a few degrees takes beams the design gave to its neighbour or to no
+        mirror, and the design's nominal assignment would misplace those points.
+        """
+        from ..beams import BeamModel
         from ..calibration.fit import design_hash
+        from ..verify import verify
 
         perts = dict(perturbations) if perturbations else None
         side = np.array([0 if m.side == "L" else 1 for m in design.mirrors], dtype=int)
-        return cls(design.beam_model(perts, mirrors_deployed=True),
-                   design.beam_model(perts, mirrors_deployed=False), side, design.spec.name,
-                   design_hash(design.spec), calibration_id if perts else "none")
+        v = verify(design, perts)
+        deployed = BeamModel.build(design.lidar, design.patches(perts), v.hit,
+                                   design.spec.nod.pivot_m)
+        return cls(deployed, design.beam_model(perts, mirrors_deployed=False), side,
+                   np.asarray(v.blocker == -1), design.spec.name, design_hash(design.spec),
+                   calibration_id if perts else "none")
 
     @property
     def lidar(self):
@@ -277,6 +293,7 @@ class AssemblyStats:
     error_codes: int = 0
     no_nod: int = 0
     mirror_moving: int = 0
+    blocked: int = 0
     points: int = 0
 
 
@@ -384,7 +401,9 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
         state[refl] = np.where(model.mirror_side[mirror[refl]] == 0, left, right)
     moving = (state == BETWEEN) & have_nod
     n_moving = int(moving.sum())
-    keep = have_nod & ~moving
+    blocked = (state == DEPLOYED) & ~model.clear[steps - lidar.step_min] & have_nod
+    n_blocked = int(blocked.sum())
+    keep = have_nod & ~moving & ~blocked
     steps, r, scan_i, t, nod_rad = steps[keep], r[keep], scan_i[keep], t[keep], nod_rad[keep]
     mirror, state = mirror[keep], state[keep]
 
@@ -412,7 +431,7 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
         xyz = _apply(W, xyz)
 
     stats = AssemblyStats(beams=n_beams, error_codes=n_err, no_nod=n_no_nod,
-                          mirror_moving=n_moving, points=len(r))
+                          mirror_moving=n_moving, blocked=n_blocked, points=len(r))
     return PointCloud(xyz, t, steps.astype(np.int32), mirror.astype(np.int16),
                       scan_i.astype(np.int32), r, frame, model.design_name, model.design_hash,
                       model.calibration_id, model.deployed.mirror_names, asdict(stats))
