@@ -13,8 +13,14 @@ import pytest
 from numpy.testing import assert_allclose
 
 from nodlidar.cli import main
-from nodlidar.tracking.motion import (MotionEstimate, RenyiCost, coarse_motion, compensate,
-                                      refine_motion, voxel_entropy)
+from nodlidar.tracking.motion import (
+    MotionEstimate,
+    RenyiCost,
+    coarse_motion,
+    compensate,
+    refine_motion,
+    voxel_entropy,
+)
 from nodlidar.tracking.segment import SegmentConfig, cluster_points, segment_batch
 from nodlidar.tracking.simdata import ScanPoints, synthetic_scans
 from nodlidar.tracking.study import convergence_index, count_traces

@@ -8,7 +8,9 @@ for more than ``max_missed`` scans ends. The default ``max_missed = 12`` outlast
 blind interval (the head sweeps past an object's height band, ~8 scans on the paper's ramp).
 
 Motion: after two scans, the coarse centroid line (:func:`coarse_motion`), then the entropy
-refinement (:func:`refine_motion`) over the track's last ``window_scans`` scans. Position is
+refinement (:func:`refine_motion`) over the track's last ``window_scans`` scans, warm-started
+from the previous refinement (search half-width ``warm_search_m_s``) once there is one; the
+Rényi sum uses at most ``max_points`` points. Position is
 the centroid of the latest scan's points, and the covariance of (x, y, vx, vy) comes from the
 residuals of the centroid line fit (ordinary least squares, isotropic), with the velocity
 block replaced by the refinement's curvature covariance when that is available and tighter.
@@ -38,6 +40,8 @@ class TrackerConfig:
     sigma_m: float = 0.02
     voxel_m: float = 0.03
     position_sigma_m: float = 0.03
+    max_points: int = 300
+    warm_search_m_s: float = 0.03
 
     def __post_init__(self) -> None:
         require(self.confirm_scans >= 2, "confirm_scans", self.confirm_scans, ">= 2")
@@ -144,8 +148,13 @@ class Tracker:
         tr.coarse = coarse_motion(C, T)
         P = np.concatenate(tr.points[-cfg.window_scans:])
         Tp = np.concatenate(tr.times[-cfg.window_scans:])
-        tr.motion = refine_motion(P, Tp, tr.coarse, entropy=cfg.entropy, sigma_m=cfg.sigma_m,
-                                  voxel_m=cfg.voxel_m, n_scans=k)
+        # warm start from the previous refinement (a small search around it), cold from the
+        # centroid line: keeps one update well inside the scan period
+        warm = tr.motion is not None
+        tr.motion = refine_motion(P, Tp, tr.motion if warm else tr.coarse, entropy=cfg.entropy,
+                                  sigma_m=cfg.sigma_m, voxel_m=cfg.voxel_m, n_scans=k,
+                                  max_points=cfg.max_points,
+                                  search_m_s=cfg.warm_search_m_s if warm else 0.08)
         # OLS covariance of the centroid line (isotropic residual variance)
         tc = T - T.mean()
         res = C - (C.mean(axis=0) + np.outer(tc, tr.coarse.velocity))
