@@ -82,3 +82,19 @@ def test_voxel_entropy_study_reported(design):
               e["heading_deg"][-1])
         assert abs(e["v"][-1] - TRACKING_SPEED_M_S) <= 0.01
         assert abs(e["heading_deg"][-1] - TRACKING_HEADING_DEG) <= 2.0
+
+
+@pytest.mark.slow
+def test_convergence_over_noise_seeds(design):
+    """Seed 0 alone is one noise draw. Over 8 seeds (Rényi) the mirrors converge earlier in
+    most runs but not all (seed 7: 9 with mirrors vs 7 without, measured), so the claim
+    checked is about the median, and the per-seed numbers are printed."""
+    from nodlidar.tracking.study import seed_sweep
+
+    rows = seed_sweep(design, range(8), 38, ("renyi",))
+    for r in rows:
+        print(r)
+    m = [r["conv_mirrors"] for r in rows]
+    n = [r["conv_no_mirrors"] for r in rows]
+    assert None not in m and None not in n
+    assert np.median(m) <= np.median(n)

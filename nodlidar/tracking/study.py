@@ -32,9 +32,8 @@ from .simdata import ScanPoints, simulate_scans
 from .tracker import Tracker, TrackerConfig
 
 __all__ = ["table_markdown", "table_csv", "V_TOL_M_S", "HEADING_TOL_DEG", "count_traces",
-           "convergence_index", "ConfigResult",
-           "StudyResult", "plot_segmentation", "run_config", "run_study", "study_table", "plot_clouds",
-           "plot_convergence"]
+           "convergence_index", "ConfigResult", "StudyResult", "seed_sweep", "plot_segmentation",
+           "run_config", "run_study", "study_table", "plot_clouds", "plot_convergence"]
 
 V_TOL_M_S = 0.01
 HEADING_TOL_DEG = 2.0
@@ -187,6 +186,8 @@ def study_table(result: StudyResult) -> list[dict]:
                 "config": c.label, "entropy": ent, "scans": c.n_scans,
                 "scans_seeing_object": c.scans_seen, "scans_detected": c.scans_detected,
                 "traces_total": c.traces_total,
+                # the paper counts traces over the 13 scans that saw the object
+                "traces_first_13_scans": int(sum(c.traces_per_scan[:13])),
                 "traces_per_scan": round(c.traces_total / max(c.scans_seen, 1), 2),
                 "points_per_scan": round(c.points_total / max(c.scans_seen, 1), 1),
                 "points_total": c.points_total,
@@ -211,6 +212,24 @@ def table_csv(rows: list[dict]) -> str:
     keys = list(rows[0])
     return "\n".join([",".join(keys)] + [",".join("" if r[k] is None else str(r[k]) for k in keys)
                                          for r in rows]) + "\n"
+
+
+def seed_sweep(design, seeds, n_scans: int = 38, entropies=("renyi",)) -> list[dict]:
+    """Convergence scan ("both") and final errors per noise seed, both configurations: how
+    robust the single-run comparison is. One row per (seed, entropy)."""
+    rows = []
+    for seed in seeds:
+        res = run_study(design, n_scans=n_scans, seed=seed, entropies=entropies)
+        m, n = res.configs
+        for ent in entropies:
+            rows.append({"seed": seed, "entropy": ent,
+                         "conv_mirrors": m.convergence[ent]["both"],
+                         "conv_no_mirrors": n.convergence[ent]["both"],
+                         "err_v_mirrors": round(m.final_error[ent]["v_m_s"], 4),
+                         "err_v_no_mirrors": round(n.final_error[ent]["v_m_s"], 4),
+                         "err_heading_mirrors": round(m.final_error[ent]["heading_deg"], 3),
+                         "err_heading_no_mirrors": round(n.final_error[ent]["heading_deg"], 3)})
+    return rows
 
 
 def plot_clouds(result: StudyResult):
