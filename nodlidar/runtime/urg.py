@@ -24,8 +24,8 @@ from __future__ import annotations
 import collections
 import select
 import time
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 
 import numpy as np
 import serial
@@ -65,6 +65,8 @@ class Scan:
         else ``host_time_s`` minus one scan period.
     dmin_mm : int
         Values below this are error codes.
+    raw : bytes
+        The verified SCIP message exactly as received (for recording).
     """
 
     seq: int
@@ -77,6 +79,7 @@ class Scan:
     host_time_s: float
     stamp_s: float
     dmin_mm: int = 20
+    raw: bytes = field(default=b"", repr=False)
 
     @property
     def device_time_s(self) -> float:
@@ -428,8 +431,12 @@ class UrgDriver:
         return self.params
 
     # -- clock ------------------------------------------------------------------------
-    def sync_clock(self, samples: int = 10) -> ClockSync:
+    def sync_clock(self, samples: int = 10,
+                   time_source: Callable[[], float] = time.monotonic) -> ClockSync:
         """Estimate the device-to-host clock offset with ``TM0``/``TM1``/``TM2``.
+
+        ``time_source`` is the host clock to map to (default ``time.monotonic``; pass the
+        actuators' time source so scan stamps and servo samples share one clock).
 
         Each ``TM1`` round trip gives ``offset = (t_send + t_recv) / 2 - t_device``; the
         sample with the smallest round-trip time is kept (its error is at most half
@@ -441,9 +448,9 @@ class UrgDriver:
         best: tuple[float, float] | None = None
         try:
             for _ in range(samples):
-                t0 = time.monotonic()
+                t0 = time_source()
                 reply = self._call(b"TM1\n")
-                t1 = time.monotonic()
+                t1 = time_source()
                 if not reply.body:
                     raise ProtocolError("urg TM1 reply has no time line; allowed: 4 chars + sum")
                 dev_ms = self._unwrap(scip.decode_value(scip.verify_line(reply.body[0])))
@@ -466,7 +473,8 @@ class UrgDriver:
             raise ParameterError("urg.steps", (start, end), f"{p.amin} <= start <= end <= {p.amax}")
         return scip.DistanceRequest(command, start, end, int(cluster), interval, count, tag)
 
-    def _make_scan(self, frame: scip.ScanFrame, t_rx: float, ts: int, index: int) -> Scan:
+    def _make_scan(self, frame: scip.ScanFrame, t_rx: float, ts: int, index: int,
+                   raw: bytes = b"") -> Scan:
         p = self._params()
         period_ms = 60000.0 / p.scan_rpm
         stamp = (self.clock_sync.host_time(ts) if self.clock_sync is not None
@@ -474,7 +482,8 @@ class UrgDriver:
         rm = frame.ranges_mm
         scan = Scan(seq=self._seq, index=index, request=frame.request, steps=frame.steps,
                     ranges_m=scip.ranges_mm_to_m(rm, p.dmin_mm), ranges_mm=rm,
-                    timestamp_ms=ts, host_time_s=t_rx, stamp_s=stamp, dmin_mm=p.dmin_mm)
+                    timestamp_ms=ts, host_time_s=t_rx, stamp_s=stamp, dmin_mm=p.dmin_mm,
+                    raw=raw)
         self._seq += 1
         self.stats.scans += 1
         return scan
@@ -501,7 +510,7 @@ class UrgDriver:
                 reply = self._request(req.encode(), timeout=self.timeout + 0.3)
                 frame = scip.decode_scan(reply)
                 ts = self._unwrap(frame.timestamp_ms)
-                return self._make_scan(frame, time.monotonic(), ts, 0)
+                return self._make_scan(frame, time.monotonic(), ts, 0, reply.raw)
             except ProtocolError:
                 self.stats.bad_scans += 1
             except (_LinkLost, serial.SerialException, OSError) as e:
@@ -581,7 +590,7 @@ class UrgDriver:
                         if last_index >= 0:
                             self.stats.dropped_scans += max(0, (index - last_index) // every - 1)
                         last_index = index
-                        scan = self._make_scan(fr, t_rx, ts, index)
+                        scan = self._make_scan(fr, t_rx, ts, index, reply.raw)
                         if dev_count:
                             device_left = fr.remaining
                         delivered += 1

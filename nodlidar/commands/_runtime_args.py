@@ -1,0 +1,70 @@
+"""Options shared by the runtime commands (info, scan, record, replay)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..errors import ParameterError
+
+
+def add_device_args(p, *, design: bool = True) -> None:
+    """--design, --port, --servo-port, --calibration and the simulated-sensor options."""
+    if design:
+        p.add_argument("--design", metavar="TOML", default=None,
+                       help="design file (default: design/urg04lx-paper.toml)")
+        p.add_argument("--calibration", metavar="TOML", default=None,
+                       help="calibration file of this design (mirror perturbations)")
+    p.add_argument("--port", metavar="URL", default=None,
+                   help="lidar port: device path or socket://host:port "
+                        "(default: the built-in simulated sensor)")
+    p.add_argument("--servo-port", metavar="URL", default=None,
+                   help="Dynamixel bus port (default: the built-in simulated sensor)")
+    p.add_argument("--sim-rate", type=float, default=1.0, metavar="X",
+                   help="simulated sensor: simulated seconds per wall second (e.g. 5)")
+    p.add_argument("--sim-transport", choices=("pty", "tcp"), default="pty",
+                   help="simulated sensor: serve over pseudo-terminals or TCP (default pty)")
+    p.add_argument("--scene", default=None, help="simulated sensor: scene name or TOML (default room)")
+    p.add_argument("--no-noise", action="store_true", help="simulated sensor: no range noise")
+
+
+def session_from_args(args):
+    from ..runtime.session import Session
+
+    return Session(getattr(args, "design", None), port=args.port, servo_port=args.servo_port,
+                   calibration=getattr(args, "calibration", None), transport=args.sim_transport,
+                   sim_rate=args.sim_rate, scene=args.scene, noise=not args.no_noise)
+
+
+def add_frame_args(p) -> None:
+    p.add_argument("--frame", choices=("sensor", "robot", "world"), default="sensor",
+                   help="output frame (default sensor)")
+    p.add_argument("--robot2sensor", type=float, nargs=6, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+                   default=None, help="sensor pose on the robot [m, deg] (frames robot/world)")
+    p.add_argument("--world2robot", type=float, nargs=6, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+                   default=None, help="robot pose in the world [m, deg] (frame world)")
+
+
+def pose_matrix(v, name: str) -> np.ndarray:
+    """4x4 from x y z [m] roll pitch yaw [deg] (R = Rz(yaw) Ry(pitch) Rx(roll))."""
+    if v is None:
+        return np.eye(4)
+    if not all(math.isfinite(x) for x in v):
+        raise ParameterError(name, v, "six finite numbers: x y z [m] roll pitch yaw [deg]")
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("ZYX", [v[5], v[4], v[3]], degrees=True).as_matrix()
+    T[:3, 3] = v[:3]
+    return T
+
+
+def frame_kwargs(args) -> dict:
+    return {"frame": args.frame, "robot2sensor": pose_matrix(args.robot2sensor, "--robot2sensor"),
+            "world2robot": pose_matrix(args.world2robot, "--world2robot")}
+
+
+def check_out(path: str, field: str = "--out") -> None:
+    if not path.lower().endswith((".ply", ".pcd")):
+        raise ParameterError(field, path, "a .ply or .pcd file name")

@@ -1,0 +1,59 @@
+"""``nodlidar info``: what is connected - the lidar's VV/PP/II and the servos on the bus.
+
+Without ``--port``/``--servo-port`` it starts the built-in simulated sensor and reports
+that.
+"""
+
+from __future__ import annotations
+
+import json
+
+from ._runtime_args import add_device_args, session_from_args
+
+
+def register(sub) -> None:
+    p = sub.add_parser("info", help="device info: lidar VV/PP/II and the servos found",
+                       description=__doc__)
+    add_device_args(p, design=False)
+    p.add_argument("--design", metavar="TOML", default=None,
+                   help="design of the simulated sensor (default: design/urg04lx-paper.toml)")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    with session_from_args(args) as s:
+        info = s.info()
+    v, pp, st = info["version"], info["params"], info["state"]
+    out = {"lidar": _plain(v), "params": _plain(pp), "state": _plain(st),
+           "servos": info["servos"], "simulated": args.port is None}
+    if args.json:
+        print(json.dumps(out, indent=2, default=str))
+        return 0
+    print("lidar (VV):")
+    for k, x in out["lidar"].items():
+        print(f"  {k:>14}: {x}")
+    print("parameters (PP):")
+    for k, x in out["params"].items():
+        print(f"  {k:>14}: {x}")
+    print("state (II):")
+    for k, x in out["state"].items():
+        print(f"  {k:>14}: {x}")
+    print(f"servos found: {len(out['servos'])}")
+    for sv in out["servos"]:
+        print(f"  id {sv['id']} ({sv['role']}): model {sv['model_number']}, firmware {sv['firmware']}")
+    return 0
+
+
+def _plain(obj) -> dict:
+    import dataclasses
+
+    if dataclasses.is_dataclass(obj):
+        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if hasattr(obj, "_asdict"):
+        return {k: _jsonable(x) for k, x in obj._asdict().items()}
+    return {"value": str(obj)}
+
+
+def _jsonable(x):
+    return x if isinstance(x, (int, float, str, bool)) or x is None else str(x)
