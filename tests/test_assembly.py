@@ -205,3 +205,24 @@ def test_bad_input():
         assemble(model, batch, 0.0, frame="world", robot2sensor=np.eye(4))
     with pytest.raises(ParameterError, match="mirror state"):
         assemble(model, batch, 0.0, mirror_left="half")
+
+
+def test_pose_track_matches_scipy_slerp():
+    """The written-out slerp against scipy's Slerp (an independent implementation); the
+    translation is linear; queries outside the poses clamp."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    rng = np.random.default_rng(3)
+    ts = np.sort(rng.uniform(0, 10, 8))
+    rots = Rotation.random(8, random_state=4)
+    T = np.tile(np.eye(4), (8, 1, 1))
+    T[:, :3, :3] = rots.as_matrix()
+    T[:, :3, 3] = rng.normal(size=(8, 3))
+    q = np.concatenate([rng.uniform(-1, 11, 1000), ts])
+    got = PoseTrack(ts, T).at(q)
+    qc = np.clip(q, ts[0], ts[-1])
+    # both are exact slerps: agreement to float rounding
+    assert_allclose(got[:, :3, :3], Slerp(ts, rots)(qc).as_matrix(), atol=1e-12, rtol=0)
+    for j in range(3):
+        assert_allclose(got[:, j, 3], np.interp(qc, ts, T[:, j, 3]), atol=1e-12, rtol=0)
+    assert_allclose(got[-8:], T, atol=1e-12, rtol=0)  # at the keyframes: the poses

@@ -213,8 +213,13 @@ class PoseTrack:
                 "strictly increasing times")
 
     def at(self, t: np.ndarray) -> np.ndarray:
-        """``(n, 4, 4)`` world2robot at times ``t`` (n,) [s]."""
-        from scipy.spatial.transform import Rotation, Slerp
+        """``(n, 4, 4)`` world2robot at times ``t`` (n,) [s].
+
+        Slerp written out (``R_i exp(f w_i)``, ``w_i`` the rotation vector from pose i to
+        i+1, Rodrigues' formula vectorised over points): scipy's per-point Rotation
+        products cost more than the rest of assembly together.
+        """
+        from scipy.spatial.transform import Rotation
 
         t = np.asarray(t, dtype=float)
         T = np.asarray(self.world2robot, float)
@@ -225,7 +230,21 @@ class PoseTrack:
             out[:] = T[0]
             return out
         tq = np.clip(t, ts[0], ts[-1])
-        out[:, :3, :3] = Slerp(ts, Rotation.from_matrix(T[:, :3, :3]))(tq).as_matrix()
+        R = T[:, :3, :3]
+        w = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()  # (k-1, 3)
+        i = np.clip(np.searchsorted(ts, tq, side="right") - 1, 0, ts.size - 2)
+        f = (tq - ts[i]) / (ts[i + 1] - ts[i])
+        v = f[:, None] * w[i]
+        th = np.linalg.norm(v, axis=1)
+        safe = np.where(th > 1e-12, th, 1.0)
+        a, b = np.sin(th) / safe, (1.0 - np.cos(th)) / safe**2
+        a = np.where(th > 1e-12, a, 1.0)
+        b = np.where(th > 1e-12, b, 0.5)
+        K = np.zeros((t.size, 3, 3))
+        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+        K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+        rel = np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+        out[:, :3, :3] = R[i] @ rel
         for j in range(3):  # three columns, not a per-point loop
             out[:, j, 3] = np.interp(tq, ts, T[:, j, 3])
         return out
