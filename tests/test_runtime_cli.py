@@ -53,6 +53,9 @@ def test_commands_with_explicit_ports(capsys, tmp_path, transport):
         code, out, err = run(capsys, "info", *ports)
         assert code == 0, err
         assert "simulated" not in err and "servos found: 3" in out
+        code, out, err = run(capsys, "info", "--port", sim.lidar_url)
+        assert code == 0, err
+        assert "URG-04LX" in out and "servos: not queried" in out
         code, out, err = run(capsys, "scan", *ports, "--out", str(tmp_path / "c.pcd"))
         assert code == 0, err
     cloud = read_cloud(tmp_path / "c.pcd")

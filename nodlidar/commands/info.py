@@ -22,8 +22,11 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    with session_from_args(args) as s:
-        info = s.info()
+    if args.port is not None and args.servo_port is None:
+        info = _lidar_only(args.port)  # `nodlidar info --port URL`: just the lidar
+    else:
+        with session_from_args(args) as s:
+            info = s.info()
     v, pp, st = info["version"], info["params"], info["state"]
     out = {"lidar": _plain(v), "params": _plain(pp), "state": _plain(st),
            "servos": info["servos"], "simulated": args.port is None}
@@ -39,10 +42,21 @@ def run(args) -> int:
     print("state (II):")
     for k, x in out["state"].items():
         print(f"  {k:>14}: {x}")
+    if out["servos"] is None:
+        print("servos: not queried (no --servo-port)")
+        return 0
     print(f"servos found: {len(out['servos'])}")
     for sv in out["servos"]:
         print(f"  id {sv['id']} ({sv['role']}): model {sv['model_number']}, firmware {sv['firmware']}")
     return 0
+
+
+def _lidar_only(port: str) -> dict:
+    from ..runtime.urg import UrgDriver
+
+    with UrgDriver(port) as urg:
+        i = urg.info()
+    return {"version": i.version, "params": i.params, "state": i.state, "servos": None}
 
 
 def _plain(obj) -> dict:
