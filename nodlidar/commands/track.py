@@ -4,7 +4,8 @@ With ``--sim`` (the default when no recording is given) the scans come from the 
 simulated sensor (direct API, no emulators), scene ``paper-tracking`` unless ``--scene``
 says otherwise. Each scan is segmented online (voxel inconsistency with the evidence so
 far), clustered, associated to tracks; every track update is printed (``--json``: one JSON
-object per line). Recordings need ``nodlidar.runtime.bag``.
+object per line). A recording (``nodlidar record``) is read with
+:func:`nodlidar.tracking.recording.scans_from_recording` (its own design and calibration).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import sys
 def register(sub) -> None:
     p = sub.add_parser("track", help="detect and track moving objects (recording or simulator)",
                        description=__doc__)
-    p.add_argument("recording", nargs="?", help="bag recording (needs nodlidar.runtime.bag)")
+    p.add_argument("recording", nargs="?", help="recording made by nodlidar record (a bag folder)")
     p.add_argument("--sim", action="store_true", help="use the built-in simulated sensor")
     p.add_argument("--design", default="design/urg04lx-paper.toml", help="design TOML")
     p.add_argument("--scene", default="paper-tracking", help="simulator scene (name or TOML)")
@@ -30,15 +31,14 @@ def register(sub) -> None:
 
 
 def _scans(args, design):
-    from ..errors import ParameterError, require
+    from ..errors import require
 
     if args.recording and not args.sim:
-        try:
-            from ..runtime import bag  # noqa: F401
-        except ImportError:
-            raise ParameterError("recording", args.recording,
-                                 "--sim (reading recordings needs nodlidar.runtime.bag)") from None
-        raise ParameterError("recording", args.recording, "--sim (bag replay not wired yet)")
+        from ..tracking.recording import scans_from_recording
+
+        _, scans = scans_from_recording(args.recording)
+        print(f"recording {args.recording}: {len(scans)} scans", file=sys.stderr)
+        return scans
     require(args.scans >= 1, "--scans", args.scans, ">= 1")
     from ..tracking.simdata import simulate_scans
 
