@@ -353,3 +353,36 @@ def test_capture_from_runtime_scans_and_nod_samples(design):
         # same accuracy claim as from the simulator's direct API (different noise draws)
         assert np.all(np.abs(e) <= 4 * res.mirrors[name].sigma), (name, e)
         assert res.mirrors[name].after.within_band >= 0.95
+
+
+def test_calibrate_from_recordings_end_to_end(tmp_path, capsys):
+    # `nodlidar record` against the simulated sensor (Table I, URG noise) facing a wall at
+    # three orientations, then `nodlidar calibrate --walls` on the three bags
+    import math
+
+    bags = []
+    for yaw in (-25, 0, 25):
+        c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+        scene = tmp_path / f"wall{yaw}.toml"
+        scene.write_text(f'name = "wall{yaw}"\n[sensor]\nposition_m = [0.0, 0.0, 0.0]\n'
+                         f'[[plane]]\nname = "wall"\ncenter_m = [{c}, {s}, 0.0]\n'
+                         f'normal = [{-c}, {-s}, 0.0]\nsize_m = [8.0, 4.0]\n')
+        bags.append(str(tmp_path / f"bag{yaw}"))
+        assert main(["record", "--out", bags[-1], "--scans", "25", "--scene", str(scene),
+                     "--perturb", "table1", "--sim-rate", "5", "--design", str(PAPER)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "cal.toml"
+    assert main(["calibrate", "--walls", *bags, "--design", str(PAPER), "--json",
+                 "--out", str(out)]) == 0
+    data = json.loads(capsys.readouterr().out)
+    for name, m in data["mirrors"].items():
+        t = TRUTH[name]
+        e = (m["dalpha_rad"] - t.dalpha, m["dbeta_rad"] - t.dbeta, m["dd_m"] - t.dd)
+        # the issue's targets. Measured: <= 0.4 mrad, 1.6 mrad, 0.55 mm - up to ~3.7 sigma,
+        # more than from the simulator's direct API: the nod angles now come from
+        # interpolated servo samples on a synchronised clock, whose error the fit's sigma
+        # does not include
+        assert abs(e[0]) <= 3e-3 and abs(e[1]) <= 3e-3 and abs(e[2]) <= 1e-3, (name, e)
+        assert m["after"]["within_band"] >= 0.95
+    design = solve(load_design(PAPER))
+    assert load_calibration(out, design).id == data["id"]

@@ -8,8 +8,8 @@ beams on those planes (eq. 10). Needs >= 3 captures at distinct orientations.
   nodlidar calibrate --sim [--perturb table1] [--distance 1.0] [--yaw-deg -25 0 25]
 
 ``--walls`` takes wall captures: ``.npz`` files (steps, ranges_m, nod_rad; see
-``nodlidar.calibration.walls.save_capture``) or recordings made by ``nodlidar record`` (read
-through ``nodlidar.runtime.bag`` when it is installed). ``--sim`` captures the walls with
+``nodlidar.calibration.walls.save_capture``) or recordings made by ``nodlidar record`` (bag
+directories; the sensor nodding in front of the wall, mirrors deployed). ``--sim`` captures the walls with
 the simulated sensor (embree ray tracer, finite mirrors, URG noise) built with the given
 perturbations, and reports the recovered values against them.
 """
@@ -50,24 +50,15 @@ def register(sub) -> None:
 
 
 def _read_walls(paths: list[str], design) -> list:
+    from ..calibration.recordings import capture_from_recording
     from ..calibration.walls import load_capture
-    from ..errors import NodlidarError
 
     caps = []
     for path in paths:
         if Path(path).suffix == ".npz":
             caps.append(load_capture(path))
-            continue
-        try:
-            from ..runtime import bag  # noqa: F401
-        except ImportError:
-            raise NodlidarError(f"{path}: reading recordings needs nodlidar.runtime.bag, which is "
-                                "not available in this build; pass .npz wall captures") from None
-        reader = getattr(bag, "read_wall_capture", None)
-        if reader is None:
-            raise NodlidarError(f"{path}: nodlidar.runtime.bag has no wall-capture reader yet; "
-                                "pass .npz wall captures")
-        caps.append(reader(path, design))
+        else:  # a recording made by `nodlidar record`
+            caps.append(capture_from_recording(path, design)[1])
     return caps
 
 
