@@ -18,7 +18,8 @@ def test_demo_writes_every_output_it_prints(tmp_path, capsys):
     text = capsys.readouterr().out
     listed = re.findall(r"^  (\S.*?)\s{2,}(/.+)$", text, flags=re.M)
     names = {what for what, _ in listed}
-    assert {"design table", "design report", "CAD folder"} <= names
+    assert {"design table", "design report", "CAD folder", "point cloud", "calibration",
+            "calibrated cloud", "tracking study"} <= names
     for _, path in listed:
         assert Path(path).exists(), path
     # the report embeds its figures; the CAD manifest lists the mirror faces

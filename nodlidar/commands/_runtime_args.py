@@ -27,6 +27,9 @@ def add_device_args(p, *, design: bool = True) -> None:
                    help="simulated sensor: serve over pseudo-terminals or TCP (default pty)")
     p.add_argument("--scene", default=None, help="simulated sensor: scene name or TOML (default room)")
     p.add_argument("--no-noise", action="store_true", help="simulated sensor: no range noise")
+    p.add_argument("--perturb", choices=("none", "table1"), default="none",
+                   help="simulated sensor: as-built mirror errors (table1 = the paper's Table I; "
+                        "default none = built exactly as designed)")
 
 
 def session_from_args(args):
@@ -34,7 +37,17 @@ def session_from_args(args):
 
     return Session(getattr(args, "design", None), port=args.port, servo_port=args.servo_port,
                    calibration=getattr(args, "calibration", None), transport=args.sim_transport,
-                   sim_rate=args.sim_rate, scene=args.scene, noise=not args.no_noise)
+                   sim_rate=args.sim_rate, scene=args.scene, noise=not args.no_noise,
+                   sim_perturbations=sim_perturbations(args.perturb))
+
+
+def sim_perturbations(name: str):
+    """The simulated sensor's as-built mirror errors by name (``none`` or ``table1``)."""
+    if name == "none":
+        return None
+    from ..paper import TABLE_I_PERTURBATIONS
+
+    return dict(TABLE_I_PERTURBATIONS)
 
 
 def add_frame_args(p) -> None:

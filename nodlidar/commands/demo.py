@@ -3,8 +3,14 @@
 1. solve and verify ``design/urg04lx-paper.toml`` (mirror table, paper comparison);
 2. write the design report (HTML + Markdown, drift/interleave/tolerance figures);
 3. export the CAD of the mirror mounts (STEP/STL/preview/manifest) into ``cad_out/``;
+4. one nod sweep of the built-in simulated sensor (SCIP 2.0 + Dynamixel emulators, ray-traced
+   room, the as-built mirrors of the paper's Table I) -> PLY point cloud;
+5. calibrate the mirrors against three simulated walls -> calibration TOML + Figure 9;
+6. the same sweep through the calibration;
+7. the mirror vs no-mirror tracking study (paper Section VI) -> table + figures;
 
-and print where every output went.
+and print where every output went. Steps 4-7 are the ``scan``, ``calibrate`` and ``study``
+commands, run in process.
 """
 
 from __future__ import annotations
@@ -22,7 +28,8 @@ def register(sub) -> None:
     p.add_argument("--design", default=DEFAULT_DESIGN, help=f"design file (default {DEFAULT_DESIGN})")
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     p.add_argument("--cad-out", default="cad_out", help="CAD output root (default cad_out)")
-    p.add_argument("--skip", action="append", default=[], choices=["report", "cad"],
+    p.add_argument("--skip", action="append", default=[],
+                   choices=["report", "cad", "scan", "calibrate", "study"],
                    help="leave out a step (repeatable)")
     p.set_defaults(func=run)
 
@@ -46,9 +53,10 @@ class _Steps:
             print(f"   ({time.perf_counter() - self.t0:.1f} s)", flush=True)
             self.t0 = None
 
-    def output(self, what: str, path: Path) -> None:
+    def output(self, what: str, path: Path, *, echo: bool = True) -> None:
         self.outputs.append((what, Path(path)))
-        print(f"   wrote {path}", flush=True)
+        if echo:  # the sub-commands print their own "wrote" lines
+            print(f"   wrote {path}", flush=True)
 
 
 def run(args) -> int:
@@ -84,8 +92,40 @@ def run(args) -> int:
         manifest = export_cad(design, args.cad_out)
         steps.output("CAD folder", manifest.folder)
 
+    from ..cli import main as cli
+
+    def command(argv: list[str]) -> None:
+        print("   $ nodlidar " + " ".join(argv), flush=True)
+        code = cli(argv)
+        if code:
+            raise SystemExit(code)
+
+    sim = ["--design", str(args.design), "--sim-rate", "4", "--perturb", "table1"]
+    if "scan" not in args.skip:
+        steps.start("simulated sensor: one nod sweep, mirrors deployed, as built (Table I), uncalibrated")
+        command(["scan", *sim, "--out", str(out / "scan_uncalibrated.ply")])
+        steps.output("point cloud", out / "scan_uncalibrated.ply", echo=False)
+
+    if "calibrate" not in args.skip:
+        steps.start("calibration against three simulated walls (paper Section IV)")
+        cal = out / "calibration.toml"
+        command(["calibrate", "--design", str(args.design), "--sim", "--perturb", "table1",
+                 "--out", str(cal), "--plot", str(out / "calibration.png")])
+        steps.output("calibration", cal, echo=False)
+        steps.output("calibration plot", out / "calibration.png", echo=False)
+        if "scan" not in args.skip:
+            steps.start("simulated sensor: the same sweep through the calibration")
+            command(["scan", *sim, "--calibration", str(cal), "--out", str(out / "scan.ply")])
+            steps.output("calibrated cloud", out / "scan.ply", echo=False)
+
+    if "study" not in args.skip:
+        steps.start("moving-object tracking: mirrors deployed vs lifted (paper Section VI)")
+        command(["study", "mirrors", "--design", str(args.design), "--out", str(out / "study")])
+        steps.output("tracking study", out / "study" / "study_mirrors.md", echo=False)
+
     steps.done()
     print("\ndemo outputs:")
+    width = max(len(what) for what, _ in steps.outputs) + 2  # >= 2 spaces: the columns stay parseable
     for what, path in steps.outputs:
-        print(f"  {what:<16} {path.resolve()}")
+        print(f"  {what:<{width}}{path.resolve()}")
     return 0

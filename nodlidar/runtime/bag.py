@@ -192,7 +192,7 @@ def recover_bag(path: str | Path) -> bool:
     """
     p = Path(path)
     if not p.is_dir():
-        raise DesignFileError(f"bag not found: {p} (a directory written by 'nodlidar record')")
+        raise DesignFileError(f"recording not found: {p} (expected a bag folder written by 'nodlidar record')")
     if (p / "metadata.yaml").exists():
         return False
     dbs = sorted(p.glob("*.db3"))

@@ -97,6 +97,8 @@ class Session:
         Simulated scene (built-in name or TOML; default ``room``).
     noise : bool
         Simulated range noise.
+    sim_perturbations : dict of str -> Perturbation, optional
+        The simulated sensor's as-built mirror errors (ground truth a calibration should find).
     log : callable
         Progress/status messages (default: stderr).
     """
@@ -105,6 +107,7 @@ class Session:
                  servo_port: str | None = None, calibration: str | Path | None = None,
                  transport: str = "pty", sim_rate: float = 1.0, scene: str | None = None,
                  noise: bool = True, seed: int = 0, lidar_timeout_s: float = 1.0,
+                 sim_perturbations=None,
                  log: Callable[[str], None] | None = _stderr):
         if (port is None) != (servo_port is None):
             raise ParameterError("--port/--servo-port", (port, servo_port),
@@ -115,6 +118,7 @@ class Session:
         self.calibration_path = Path(calibration) if calibration is not None else None
         self.transport, self.sim_rate, self.scene = transport, float(sim_rate), scene
         self.noise, self.seed = bool(noise), int(seed)
+        self.sim_perturbations = sim_perturbations
         self.lidar_timeout_s = float(lidar_timeout_s)
         self.log = log or (lambda _m: None)
         self.lift_left = MirrorLiftProfile()
@@ -150,12 +154,14 @@ class Session:
             if self.simulated:
                 from ..sim.sensor import SimulatedSensor
 
-                self.sim = SimulatedSensor(self.design, self.scene, transport=self.transport,
+                self.sim = SimulatedSensor(self.design, self.scene, perturbations=self.sim_perturbations,
+                                           transport=self.transport,
                                            rate=self.sim_rate, noise=self.noise, seed=self.seed)
                 self.sim.start()
                 self.time_source = self.sim.clock.now
                 lidar_url, servo_url = self.sim.lidar_url, self.sim.servo_url
-                self.log(f"using the simulated sensor (scene {self.sim.scene.name!r}, "
+                built = "mirrors with as-built errors" if self.sim_perturbations else "mirrors as designed"
+                self.log(f"using the simulated sensor (scene {self.sim.scene.name!r}, {built}, "
                          f"{self.transport} {lidar_url} + {servo_url}, {self.sim_rate:g}x real time)")
             else:
                 lidar_url, servo_url = self.port, self.servo_port
