@@ -2,7 +2,8 @@
 
 Subcommands live in :mod:`nodlidar.commands` (one module each, discovered here). Errors
 the user can fix (:class:`~nodlidar.errors.NodlidarError`) become one line on stderr and
-exit status 2; nothing the user typed produces a traceback.
+exit status 2; what the system refuses (``OSError``: a serial port that does not exist or is
+busy, a full disk) one line and exit status 1. Nothing the user typed produces a traceback.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ import sys
 from . import commands
 from .errors import NodlidarError
 
-EXIT_USAGE = 2
+EXIT_USAGE = 2  # the user can fix the input
+EXIT_OS = 1  # the system refused (device missing, port busy, disk full)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -51,6 +53,9 @@ def main(argv: list[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:  # a port that cannot be opened, a full disk: the system's words, one line
+        print(f"nodlidar {args.command}: {exc}", file=sys.stderr)
+        return EXIT_OS
     except KeyboardInterrupt:
         print(f"nodlidar {args.command}: interrupted", file=sys.stderr)
         return 130

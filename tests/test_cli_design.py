@@ -97,3 +97,24 @@ def test_import_nodlidar_stays_light():
             "if m in sys.modules]; print(heavy); sys.exit(1 if heavy else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def _closed_port() -> int:
+    """A loopback TCP port nobody listens on (bound, then released)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("argv", [
+    ["info", "--port", "socket://127.0.0.1:{port}"],
+    ["scan", "--port", "/nonexistent/ttyACM9", "--servo-port", "/nonexistent/ttyUSB9"],
+])
+def test_device_that_cannot_be_opened_is_one_line_exit_1(capsys, argv):
+    argv = [a.format(port=_closed_port()) for a in argv]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert argv[2] in err  # names the port the user gave

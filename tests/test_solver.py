@@ -9,7 +9,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from nodlidar import lidar as lidar_mod
-from nodlidar.closed_form import eq1_bearing_on_arc, eq1_bearing_from_range
+from nodlidar.closed_form import eq1_bearing_from_range, eq1_bearing_on_arc
 from nodlidar.errors import InfeasibleDesignError, ParameterError
 from nodlidar.geometry import Perturbation, bearing_of
 from nodlidar.solver import solve, window_steps
