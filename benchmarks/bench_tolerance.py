@@ -63,7 +63,9 @@ def run(design, samples: int, **kw):
 
 
 def main() -> None:
-    samples = int(sys.argv[1]) if len(sys.argv) > 1 else 40_000
+    # numeric arguments only: under ``benchmarks/run.py tolerance`` argv holds benchmark names
+    counts = [a for a in sys.argv[1:] if a.isdigit()]
+    samples = int(counts[0]) if counts else 40_000
     design = solve(load_design(ROOT / "design" / "urg04lx-paper.toml"))
     beams = sum(len(m.steps) for m in design.mirrors)
     print(f"{samples} samples x {beams} reflected beams x 4 ranges, chunks of 1000; "

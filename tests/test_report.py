@@ -1,6 +1,8 @@
 """The design report: files exist, the HTML embeds every figure, the Markdown's figures
 exist; importing the analysis does not pull in matplotlib or Dask."""
 
+import base64
+import json
 import re
 import subprocess
 import sys
@@ -33,6 +35,11 @@ def test_html_embeds_every_figure(report_dir):
     imgs = re.findall(r'<img src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)
     assert len(imgs) == N_FIGURES
     assert all(len(b) > 1000 for b in imgs)
+    # every figure written beside the Markdown is embedded byte for byte, and nothing else
+    embedded = {base64.b64decode(b) for b in imgs}
+    files = {p.read_bytes() for p in (report_dir / "figures").glob("*.png")}
+    assert len(embedded) == N_FIGURES and embedded == files
+    assert all(b.startswith(b"\x89PNG\r\n\x1a\n") for b in embedded)
     assert "src=\"figures/" not in text  # self-contained: no file references
     for heading in ("Mirrors", "Verification", "Comparison with the paper", "Drift with range",
                     "Interleave and beam density", "Tolerance analysis", "Sensitivities",
@@ -70,7 +77,7 @@ def test_tolerance_cli_json(capsys):
     assert main(["tolerance", str(PAPER), "--samples", "40", "--workers", "0", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["n_samples"] == 40 and len(out["percentiles"]) == 16
-    assert len(out["sensitivities"]) == 28
+    assert len(out["sensitivities"]) == 4 * 8     # 4 mirrors x 8 parameters
 
 
 def test_import_stays_light():
@@ -80,3 +87,50 @@ def test_import_stays_light():
             "print(bad); sys.exit(1 if bad else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_report_compares_with_the_optimised_design(report_dir):
+    """The other placement is really solved and shown: its numbers are in the HTML tables."""
+    from nodlidar.analysis.report import _fmt
+
+    summary = json.loads((report_dir / "report.json").read_text())
+    assert summary["method"] == "anchor" and summary["other"]["method"] == "optimal"
+    ours = {m["name"]: m for m in summary["mirrors"]}
+    other = {m["name"]: m for m in summary["other"]["mirrors"]}
+    assert set(other) == set(ours) == {"L1", "L2", "R1", "R2"}
+    text = (report_dir / "report.html").read_text()
+    for name in ("L1", "R1"):
+        # the optimiser's job: a smaller RMS interleave error at D for the outer mirrors
+        assert other[name]["rms_error_deg"] < 0.7 * ours[name]["rms_error_deg"]
+        assert f"<td>{_fmt(other[name]['rms_error_deg'])}</td>" in text
+    # the paper table has a column for the optimised design, with its own phi(L1)
+    opt = {r["quantity"]: r for r in summary["other"]["paper_comparison"]}
+    assert set(opt) == {r["quantity"] for r in summary["paper_comparison"]}
+    assert "optimal placement</th>" in text
+    assert f"<td>{_fmt(opt['L1_phi_deg']['ours'], 6)}</td>" in text
+    assert abs(opt["L1_phi_deg"]["ours"] - 80.0397) > 0.1   # not the anchor design's value
+
+
+@pytest.mark.parametrize("variant", ["paper", "k5"])
+def test_drift_figures_have_a_panel_for_every_mirror(variant):
+    """Figs 6/7 analogues are drawn for all mirrors, not only L1/L2 (also 8 mirrors, k = 5)."""
+    import matplotlib.pyplot as plt  # noqa: TID251 (closing figures in a plot test)
+
+    from nodlidar.analysis import bearing_drift, plots
+    from nodlidar.solver import solve
+    from nodlidar.spec import load_design
+
+    spec = load_design(PAPER)
+    if variant == "k5":
+        spec = spec.replace(**{"layout.windows": 5, "layout.mirrors_per_side": 4})
+    design = solve(spec)
+    drift = bearing_drift(design, [0.4, 2.0, 6.0])
+    names = [m.name for m in design.mirrors]
+    assert len(names) == (4 if variant == "paper" else 8)
+    for plot in (plots.plot_bearing, plots.plot_separation):
+        fig = plot(drift)
+        axes = [a for a in fig.axes if a.get_visible()]
+        assert [a.get_title().split(":")[0] for a in axes] == names, plot.__name__
+        for a in axes:   # one line per range plus the reference line
+            assert len(a.get_lines()) == len(drift.ranges_m) + 1
+        plt.close(fig)

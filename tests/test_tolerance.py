@@ -38,7 +38,7 @@ def design():
 # --- the [tolerance] table ----------------------------------------------------------------
 
 def test_defaults_when_absent(design):
-    tol = tolerance_spec(design.spec)
+    tol = tolerance_spec(design.spec.replace(sections={}))   # a design file without [tolerance]
     assert tol == ToleranceSpec()
     assert tol.sigma_for("L1") == MirrorSigma()
     assert tol.lidar == LidarSigma()
@@ -54,7 +54,7 @@ def test_parse_overrides_and_round_trip(design):
     # a per-mirror table overrides only the keys it names
     assert tol.sigma_for("L2") == MirrorSigma(0.002, 0.005, 0.0)
     assert tol.sigma_for("R1") == MirrorSigma(0.002, 0.001, 0.0)
-    assert_allclose(tol.lidar.as_array(), [0.001, 0, 5e-4, 5e-4, 5e-4])
+    assert_allclose(tol.lidar.as_array(), [0.001, 0, 5e-4, 5e-4, 5e-4, 0.0])
     assert tolerance_spec(tol.to_dict()) == tol
     # and it is read from a design file's [tolerance] table
     spec = design.spec.replace(sections={"tolerance": table})
@@ -67,7 +67,8 @@ def test_parse_overrides_and_round_trip(design):
     ({"dalpha": 1e-3}, "tolerance.dalpha"),
     ({"mirrors": {"L1": {"dd": 1}}}, "tolerance.mirrors.L1.dd"),
     ({"mirrors": {"L1": {"dd_m": "x"}}}, "tolerance.mirrors.L1.dd_m"),
-    ({"lidar": {"roll_rad": 0.1}}, "tolerance.lidar.roll_rad"),
+    ({"lidar": {"spin_rad": 0.1}}, "tolerance.lidar.spin_rad"),
+    ({"lidar": {"roll_rad": -0.1}}, "tolerance.lidar.roll_rad"),
     ({"samples": 0}, "tolerance.samples"),
     ({"ranges_m": [0.0]}, "tolerance.ranges_m"),
     ({"percentiles": [101]}, "tolerance.percentiles"),
@@ -113,7 +114,7 @@ def test_batch_lidar_mount_agrees_with_transformed_patches(design):
     rng = np.random.default_rng(4)
     n = 3
     dm = rng.normal(size=(n, 4, 3)) * [1e-3, 1e-3, 1e-4]
-    dl = rng.normal(size=(n, 5)) * [2e-3, 2e-3, 5e-4, 5e-4, 5e-4]
+    dl = rng.normal(size=(n, 6)) * [2e-3, 2e-3, 5e-4, 5e-4, 5e-4, 2e-3]   # yaw pitch x y z roll
     ranges = [0.5, 4.0]
     traces = trace_samples(design, dm, dl, ranges_m=ranges)
     for k in range(n):
@@ -151,6 +152,56 @@ def test_elevation_is_about_two_dbeta(design):
         assert_allclose(el[:, i], 2 * np.abs(dbeta), rtol=1 - cos_r[i] + 1e-4)
     # sign: the tilt direction sets up or down, the same for every beam of a mirror
     assert np.all(np.sign(traces[0].elevation[0]) == np.sign(traces[0].elevation[0, 0]))
+
+
+def test_lidar_roll_tilts_the_two_sides_opposite_ways(design):
+    """A roll of the lidar about x is seen as the left mirrors dipping one way and the right
+    ones the other: reflected beams leave the scan plane with opposite signs, by about
+    2 * roll * |n_y| cos(theta_r) (the roll tilts each vertical mirror by roll * n_y)."""
+    from nodlidar.geometry import matrix_from_axis_angle, rot_y, rot_z
+
+    roll = 2e-3
+    # the mount rotation is z-y-x (yaw, pitch, roll), right-handed about each axis
+    R = LidarMount(yaw=0.3, pitch=-0.2, roll=0.1).rotation()
+    assert_allclose(R, rot_z(0.3) @ rot_y(-0.2) @ matrix_from_axis_angle([1.0, 0, 0], 0.1),
+                    rtol=0, atol=1e-15)
+    dl = np.zeros((1, 6))
+    dl[0, 5] = roll
+    traces = trace_samples(design, np.zeros((1, 4, 3)), dl, ranges_m=[2.0])
+    for m, tr in zip(design.mirrors, traces, strict=True):
+        el = tr.elevation[0]
+        assert np.all(np.sign(el) == np.sign(el[0])) and np.all(np.abs(el) > 1e-4)
+        th = design.lidar.bearing_from_step(m.steps)
+        d0 = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
+        n = m.patch.normal_
+        # the batch against the reference path (mounted_patches + reflect_rays)
+        assert_allclose(el, np.arcsin(tr_out_z(design, m, roll)), rtol=0, atol=1e-12)
+        # first order: in the lidar frame the normal is rot_x(-roll) n = n - roll*n_y*ez, so
+        # out_z = 2 roll n_y (d.n); second-order terms are ~roll relative (2e-3)
+        assert_allclose(el, 2 * roll * n[1] * (d0 @ n), rtol=5e-3)
+    left = [t.elevation[0, 0] for m, t in zip(design.mirrors, traces, strict=True) if m.side == "L"]
+    right = [t.elevation[0, 0] for m, t in zip(design.mirrors, traces, strict=True) if m.side == "R"]
+    assert np.sign(left[0]) == np.sign(left[1]) == -np.sign(right[0]) == -np.sign(right[1])
+
+
+def tr_out_z(design, m, roll):
+    """z of the reflected direction via the reference path (mounted_patches + reflect_rays)."""
+    patch = mounted_patches(design, None, LidarMount(roll=roll))[list(design.mirrors).index(m)]
+    th = design.lidar.bearing_from_step(m.steps)
+    d0 = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
+    _, _, out = reflect_rays(np.zeros_like(d0), d0, patch.origin_, patch.normal_)
+    return out[:, 2]
+
+
+def test_roll_column_keeps_the_other_draws_of_a_seed(design):
+    """Adding a roll spread changes no other sampled error of a seed (roll is drawn last)."""
+    a = _problem(design, tolerance_spec({"lidar": {"yaw_rad": 1e-3, "offset_m": 1e-4}}))
+    b = _problem(design, tolerance_spec({"lidar": {"yaw_rad": 1e-3, "offset_m": 1e-4,
+                                                   "roll_rad": 1e-3}}))
+    dm_a, dl_a = _sample(a, 50, np.random.SeedSequence(3))
+    dm_b, dl_b = _sample(b, 50, np.random.SeedSequence(3))
+    assert np.array_equal(dm_a, dm_b) and np.array_equal(dl_a[:, :5], dl_b[:, :5])
+    assert np.all(dl_a[:, 5] == 0) and dl_b[:, 5].std() > 0
 
 
 def test_zero_sigma_gives_zero_error(design):
@@ -235,6 +286,49 @@ def test_existing_cluster_by_address(design):
     _same(r, r2)
 
 
+def test_large_runs_go_to_a_local_cluster_by_default(design, monkeypatch):
+    """workers=None: in process up to 20 000 samples, a local Dask cluster (one worker per
+    CPU) beyond; a scheduler address always goes to that scheduler."""
+    import nodlidar.analysis.tolerance as tolmod
+
+    calls = []
+
+    def fake(prob, sizes, seeds, **kw):
+        calls.append(kw)
+        m, r = len(prob.mirrors), len(prob.ranges)
+        for i, n in enumerate(sizes):
+            out = {k: np.zeros((n, m, r), np.float32) for k in
+                   ("bearing_error_max", "bearing_error_mean", "range_error_max", "height_max")}
+            out["elevation_max"] = np.zeros((n, m), np.float32)
+            out["edge_misses"] = np.zeros((n, m), np.int32)
+            yield i, out
+
+    monkeypatch.setattr(tolmod, "_dask_chunks", fake)
+    r = monte_carlo(design, samples=20001, chunk_size=5000)
+    assert len(calls) == 1 and calls[0]["workers"] is None and calls[0]["scheduler"] is None
+    assert r.n_samples == 20001 and r.bearing_error_max.shape == (20001, 4, 4)
+    monte_carlo(design, samples=10, scheduler="tcp://127.0.0.1:1")
+    assert len(calls) == 2 and calls[1]["scheduler"] == "tcp://127.0.0.1:1"
+    monte_carlo(design, samples=10)          # small: in process, no Dask
+    assert len(calls) == 2
+
+
+def test_own_cluster_workers_keep_glibc_malloc_defaults():
+    """Dask's nanny sets MALLOC_TRIM_THRESHOLD_ in workers, which made a chunk 1.6x slower
+    in a worker than in this process (benchmarks/bench_tolerance.py); our cluster unsets it."""
+    import os
+
+    from distributed import Client
+
+    from nodlidar.analysis.tolerance import _local_cluster
+
+    with _local_cluster(1, processes=True) as cluster, Client(cluster) as client:
+        env = client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_"))
+        threads = client.run(lambda: os.environ.get("OMP_NUM_THREADS"))
+    assert list(env.values()) == [None]
+    assert list(threads.values()) == ["1"]       # the rest of Dask's worker set-up is kept
+
+
 # --- sensitivities ---------------------------------------------------------------------------
 
 def test_sensitivities_match_closed_forms(design):
@@ -247,10 +341,12 @@ def test_sensitivities_match_closed_forms(design):
             assert_allclose(fd[p], cf[p], rtol=0, atol=1e-8 * scale, err_msg=f"{name} {p}")
         # a yaw of the mirror about O turns its reflected beams by about twice the angle
         assert np.all(np.abs(fd["dalpha"] - 2) < 0.1)
-        # pitching the lidar tilts beams out of plane; in-plane bearing is unchanged to first order
+        # pitching or rolling the lidar tilts beams out of plane; in-plane bearing is
+        # unchanged to first order
         assert np.max(np.abs(fd["lidar_pitch"])) < 1e-6
+        assert np.max(np.abs(fd["lidar_roll"])) < 1e-6
     rows = s.table()
-    assert len(rows) == 4 * 7 and {r["unit"] for r in rows} == {"deg/deg", "deg/mm"}
+    assert len(rows) == 4 * 8 and {r["unit"] for r in rows} == {"deg/deg", "deg/mm"}
 
 
 def test_sensitivity_predicts_small_perturbation(design):

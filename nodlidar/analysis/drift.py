@@ -1,8 +1,9 @@
 """Bearing drift of reflected beams with range (paper eqs 1-3, Figures 6 and 7).
 
-A mirror is placed so that its beams interleave exactly with the direct ones on the arc
-of radius D. On any other arc they do not: the reflected rays do not pass through the
-lidar origin, so the bearing at which a reflected beam is seen depends on the range.
+A mirror is placed so that its beams interleave with the direct ones on the arc of radius
+D (exactly for its anchor beam with ``placement.method = "anchor"``; in the RMS sense with
+``"optimal"``). The reflected rays do not pass through the lidar origin (they fan out from
+its mirror image), so the bearing at which a reflected beam is seen depends on the range.
 This module computes, for every mirror (not only the paper's L1/L2):
 
 * the actual bearing of each reflected beam where it crosses arcs of radius 0.4..6 m, by

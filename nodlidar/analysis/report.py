@@ -176,8 +176,8 @@ class _Doc:
         self.h.append(f"<p>{html.escape(text)}</p>")
         self.m.append(f"{text}\n")
 
-    def table(self, headers: list[str], rows: list[list[Any]]) -> None:
-        cells = [[_fmt(c) for c in r] for r in rows]
+    def table(self, headers: list[str], rows: list[list[Any]], digits: int = 4) -> None:
+        cells = [[_fmt(c, digits) for c in r] for r in rows]
         self.h.append("<table><thead><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in headers)
                       + "</tr></thead><tbody>"
                       + "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>"
@@ -262,10 +262,24 @@ def write_report(data: ReportData, out_dir: str | Path) -> ReportPaths:
                 np.degrees(s["max_error_rad"])] for n, s in vs["mirrors"].items()])
 
     doc.heading("Comparison with the paper and the " + data.other_method + " placement")
+    other_paper: dict[str, dict[str, Any]] = {}
+    if data.paper and data.other is not None:
+        from ..designio import paper_comparison
+
+        other_paper = {r["quantity"]: r for r in paper_comparison(data.other)}
     if data.paper:
-        doc.table(["quantity", "paper", "this design", "difference", "relative [%]"],
-                  [[r["quantity"], r["paper"], r["ours"], r["difference"], r["relative"] * 100]
-                   for r in data.paper])
+        heads = ["quantity", "paper", f"this design ({spec.placement.method})", "difference",
+                 "relative [%]"]
+        if other_paper:
+            heads += [f"{data.other_method} placement", f"{data.other_method} relative [%]"]
+        rows = []
+        for r in data.paper:
+            row = [r["quantity"], r["paper"], r["ours"], r["difference"], r["relative"] * 100]
+            if other_paper:
+                o = other_paper.get(r["quantity"])
+                row += [o["ours"], o["relative"] * 100] if o else [None, None]
+            rows.append(row)
+        doc.table(heads, rows, digits=6)   # the paper prints 6 significant digits
     else:
         doc.para("The design file has no [reference] table of published numbers.")
     if data.other is not None:
@@ -330,8 +344,8 @@ def write_report(data: ReportData, out_dir: str | Path) -> ReportPaths:
              t.sigma_for(n).dd_m * 1e3] for n in tr.mirror_names]
     doc.table(["mirror", "dalpha [deg]", "dbeta [deg]", "dd [mm]"], srow)
     doc.para(f"Lidar mounting: yaw {np.degrees(t.lidar.yaw_rad):.4g} deg, pitch "
-             f"{np.degrees(t.lidar.pitch_rad):.4g} deg, offset {t.lidar.offset_m * 1e3:.4g} mm "
-             "per axis.")
+             f"{np.degrees(t.lidar.pitch_rad):.4g} deg, roll {np.degrees(t.lidar.roll_rad):.4g} "
+             f"deg, offset {t.lidar.offset_m * 1e3:.4g} mm per axis.")
     trows = tr.table()
     qs = t.percentiles
     heads = (["mirror", "R [m]"] + [f"bearing p{q:g} [deg]" for q in qs]
@@ -349,7 +363,7 @@ def write_report(data: ReportData, out_dir: str | Path) -> ReportPaths:
     doc.para(f"d(bearing on the arc of radius D = {data.sensitivity.design_distance_m:g} m) / "
              "d(parameter) by central finite differences through the geometry core, over each "
              "mirror's beams; the last column is the largest difference from the closed form "
-             "(eq. 1 differentiated; none for the lidar pitch).")
+             "(eq. 1 differentiated; none for the lidar pitch and roll).")
     doc.table(["mirror", "parameter", "unit", "mean", "min", "max", "|FD - closed form|"],
               [[r["mirror"], r["parameter"], r["unit"], r["mean"], r["min"], r["max"],
                 r["closed_form_max_diff"]] for r in data.sensitivity.table()])
@@ -369,6 +383,7 @@ def write_report(data: ReportData, out_dir: str | Path) -> ReportPaths:
         "name": spec.name, "method": spec.placement.method, "mirrors": data.mirrors,
         "paper_comparison": data.paper, "verification": data.verification,
         "other": {"method": data.other_method, "mirrors": data.other_mirrors,
+                  "paper_comparison": list(other_paper.values()),
                   "error": data.other_error},
         "drift": {"ranges_m": [float(x) for x in dr.ranges_m],
                   "eq1_max_difference_rad": dr.max_closed_vs_trace,

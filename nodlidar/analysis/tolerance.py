@@ -17,8 +17,9 @@ The ``[tolerance]`` table of a design file (all keys optional; defaults below)::
     dalpha_rad = 0.002
 
     [tolerance.lidar]           # the lidar's own mounting relative to the mirror assembly
-    yaw_rad = 0.0
-    pitch_rad = 0.0
+    yaw_rad = 0.0               # about z
+    pitch_rad = 0.0             # about y
+    roll_rad = 0.0              # about x (tilts the scan plane sideways)
     offset_m = 0.0              # each of x, y, z
 
 Mirror errors are applied as :class:`~nodlidar.geometry.Perturbation` (tilt about the
@@ -96,7 +97,11 @@ DISTRIBUTIONS = ("normal", "uniform")
 
 #: Parameters of the sensitivity table and their SI units.
 PARAMETERS = {"dalpha": "rad", "dbeta": "rad", "dd": "m", "lidar_yaw": "rad",
-              "lidar_pitch": "rad", "lidar_x": "m", "lidar_y": "m"}
+              "lidar_pitch": "rad", "lidar_roll": "rad", "lidar_x": "m", "lidar_y": "m"}
+
+#: Columns of a lidar mounting error array: ``(..., 6)``; 5 columns mean no roll (the
+#: roll column was added last so that a seed draws the same other errors as before).
+LIDAR_COLUMNS = ("yaw", "pitch", "x", "y", "z", "roll")
 
 
 # ---------------------------------------------------------------------------------------
@@ -147,8 +152,8 @@ class LidarSigma:
 
     Attributes
     ----------
-    yaw_rad, pitch_rad : float
-        Rotation about z and y [rad].
+    yaw_rad, pitch_rad, roll_rad : float
+        Rotation about z, y and x [rad].
     offset_m : float
         Translation along each of x, y, z [m].
     """
@@ -156,10 +161,12 @@ class LidarSigma:
     yaw_rad: float = 0.0
     pitch_rad: float = 0.0
     offset_m: float = 0.0
+    roll_rad: float = 0.0
 
     def as_array(self) -> np.ndarray:
-        """``(5,)``: yaw, pitch, x, y, z."""
-        return np.array([self.yaw_rad, self.pitch_rad, self.offset_m, self.offset_m, self.offset_m])
+        """``(6,)`` in :data:`LIDAR_COLUMNS` order: yaw, pitch, x, y, z, roll."""
+        return np.array([self.yaw_rad, self.pitch_rad, self.offset_m, self.offset_m, self.offset_m,
+                         self.roll_rad])
 
 
 @dataclass(frozen=True)
@@ -262,9 +269,9 @@ def tolerance_spec(source: DesignSpec | dict[str, Any] | None = None) -> Toleran
         mirrors[name] = MirrorSigma(**{k: _nonneg(sub, k, where, getattr(base, k))
                                        for k in _MIRROR_KEYS})
     lt = table.get("lidar", {})
-    _unknown(lt, {"yaw_rad", "pitch_rad", "offset_m"}, "tolerance.lidar")
-    lidar = LidarSigma(**{k: _nonneg(lt, k, "tolerance.lidar", 0.0)
-                          for k in ("yaw_rad", "pitch_rad", "offset_m")})
+    lidar_keys = ("yaw_rad", "pitch_rad", "roll_rad", "offset_m")
+    _unknown(lt, set(lidar_keys), "tolerance.lidar")
+    lidar = LidarSigma(**{k: _nonneg(lt, k, "tolerance.lidar", 0.0) for k in lidar_keys})
     kw: dict[str, Any] = {}
     for key in ("distribution", "ranges_m", "percentiles", "samples", "seed", "chunk_size"):
         if key in table:
@@ -284,23 +291,39 @@ def tolerance_spec(source: DesignSpec | dict[str, Any] | None = None) -> Toleran
 
 @dataclass(frozen=True)
 class LidarMount:
-    """The lidar's pose error in the mirror-assembly frame: yaw, pitch [rad], offset [m].
+    """The lidar's pose error in the mirror-assembly frame: yaw, pitch, roll [rad], offset [m].
 
-    The lidar sits at ``R = rot_z(yaw) @ rot_y(pitch)``, ``offset``; a point ``p`` of the
-    assembly is at ``R^T (p - offset)`` in the lidar frame.
+    The lidar sits at ``R = rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)``, ``offset``; a point
+    ``p`` of the assembly is at ``R^T (p - offset)`` in the lidar frame.
     """
 
     yaw: float = 0.0
     pitch: float = 0.0
     offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    roll: float = 0.0
 
     @classmethod
     def from_array(cls, a: np.ndarray) -> LidarMount:
-        """From ``(5,)``: yaw, pitch, x, y, z."""
-        return cls(float(a[0]), float(a[1]), (float(a[2]), float(a[3]), float(a[4])))
+        """From ``(5,)`` or ``(6,)`` in :data:`LIDAR_COLUMNS` order (yaw, pitch, x, y, z[, roll])."""
+        a = np.asarray(a, dtype=float)
+        roll = float(a[5]) if len(a) > 5 else 0.0
+        return cls(float(a[0]), float(a[1]), (float(a[2]), float(a[3]), float(a[4])), roll)
 
     def rotation(self) -> np.ndarray:
-        return rot_z(self.yaw) @ rot_y(self.pitch)
+        return _mount_rotation(np.array([self.yaw]), np.array([self.pitch]),
+                               np.array([self.roll]))[0]
+
+
+def _rot_x(angle: np.ndarray) -> np.ndarray:
+    """Rotations about +x, ``(n,) -> (n, 3, 3)``: ``rot_y`` conjugated by the quarter turn
+    about z that takes +y to +x (so the core's rotations are the only ones used)."""
+    q = rot_z(-np.pi / 2)
+    return q @ rot_y(angle) @ q.T
+
+
+def _mount_rotation(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """``rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)`` for arrays ``(n,)`` -> ``(n, 3, 3)``."""
+    return rot_z(yaw) @ rot_y(pitch) @ _rot_x(roll)
 
 
 def mounted_patches(design: Design, perturbations: dict[str, Perturbation] | None = None,
@@ -342,7 +365,7 @@ class _MirrorData:
 class _Problem:
     mirrors: tuple[_MirrorData, ...]
     sigma: np.ndarray        # (m, 3)
-    lidar_sigma: np.ndarray  # (5,)
+    lidar_sigma: np.ndarray  # (6,), LIDAR_COLUMNS
     distribution: str
     ranges: np.ndarray       # (r,)
 
@@ -420,8 +443,9 @@ def _trace_mirror(md: _MirrorData, dm: np.ndarray, dl: np.ndarray, ranges: np.nd
     outward = np.where((np.sum(o * nrm, -1) > 0)[:, None], nrm, -nrm)
     o = o + dd[:, None] * outward
     # 3. yaw about the lidar axis through O; 4. into the mis-mounted lidar's frame
-    Rt = np.swapaxes(rot_z(dl[:, 0]) @ rot_y(dl[:, 1]), -1, -2) @ rot_z(dalpha)  # (n,3,3)
-    off = np.swapaxes(rot_z(dl[:, 0]) @ rot_y(dl[:, 1]), -1, -2) @ dl[:, 2:5, None]
+    RmT = np.swapaxes(_mount_rotation(dl[:, 0], dl[:, 1], dl[:, 5]), -1, -2)    # (n,3,3)
+    Rt = RmT @ rot_z(dalpha)
+    off = RmT @ dl[:, 2:5, None]
     o = (Rt @ o[:, :, None] - off)[:, :, 0]
     nrm = (Rt @ nrm[:, :, None])[:, :, 0]
     along = (Rt @ along[:, :, None])[:, :, 0]
@@ -460,8 +484,9 @@ def trace_samples(design: Design, mirror_errors: np.ndarray, lidar_errors: np.nd
     mirror_errors : (n, m, 3) float
         Per sample and mirror (in ``design.mirrors`` order): dalpha [rad], dbeta [rad],
         dd [m], applied exactly like :meth:`MirrorPatch.perturbed`.
-    lidar_errors : (n, 5) float, optional
-        Lidar yaw, pitch [rad] and x, y, z offset [m] (see :class:`LidarMount`).
+    lidar_errors : (n, 5) or (n, 6) float, optional
+        Lidar yaw, pitch [rad], x, y, z offset [m] and roll [rad] (:data:`LIDAR_COLUMNS`,
+        :class:`LidarMount`); 5 columns mean no roll.
     ranges_m : (r,) float
         Arc radii [m].
 
@@ -473,9 +498,11 @@ def trace_samples(design: Design, mirror_errors: np.ndarray, lidar_errors: np.nd
     m = len(design.mirrors)
     if dm.ndim != 3 or dm.shape[1:] != (m, 3):
         raise ParameterError("mirror_errors", f"shape {dm.shape}", f"(n, {m}, 3)")
-    dl = np.zeros((len(dm), 5)) if lidar_errors is None else np.asarray(lidar_errors, dtype=float)
-    if dl.shape != (len(dm), 5):
-        raise ParameterError("lidar_errors", f"shape {dl.shape}", f"({len(dm)}, 5)")
+    dl = np.zeros((len(dm), 6)) if lidar_errors is None else np.asarray(lidar_errors, dtype=float)
+    if dl.shape not in ((len(dm), 5), (len(dm), 6)):
+        raise ParameterError("lidar_errors", f"shape {dl.shape}", f"({len(dm)}, 5) or ({len(dm)}, 6)")
+    if dl.shape[1] == 5:
+        dl = np.c_[dl, np.zeros(len(dl))]
     prob = _problem(design, ToleranceSpec(), ranges_m)
     return [_trace_mirror(md, dm[:, i], dl, prob.ranges) for i, md in enumerate(prob.mirrors)]
 
@@ -495,11 +522,14 @@ def _draw(rng: np.random.Generator, shape: tuple[int, ...], distribution: str) -
 
 
 def _sample(prob: _Problem, n: int, seed: np.random.SeedSequence) -> tuple[np.ndarray, np.ndarray]:
-    """``(n, m, 3)`` mirror errors and ``(n, 5)`` lidar errors for one chunk."""
+    """``(n, m, 3)`` mirror errors and ``(n, 6)`` lidar errors (:data:`LIDAR_COLUMNS`) for
+    one chunk. The roll column is drawn last, so the other errors of a seed are the same
+    as before it existed."""
     rng = np.random.default_rng(seed)
     dm = _draw(rng, (n, len(prob.mirrors), 3), prob.distribution) * prob.sigma[None]
-    dl = _draw(rng, (n, 5), prob.distribution) * prob.lidar_sigma[None]
-    return dm, dl
+    dl = _draw(rng, (n, 5), prob.distribution) * prob.lidar_sigma[None, :5]
+    roll = _draw(rng, (n, 1), prob.distribution) * prob.lidar_sigma[None, 5:]
+    return dm, np.c_[dl, roll]
 
 
 def _run_chunk(prob: _Problem, n: int, seed: np.random.SeedSequence) -> dict[str, np.ndarray]:
@@ -669,11 +699,32 @@ def monte_carlo(
                            n_samples=tol.samples, **cat)
 
 
-def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
-    """Yield ``(chunk index, result)`` as chunks finish on a Dask cluster."""
+#: Environment variables Dask's nanny sets in worker processes that we leave unset.
+#: ``MALLOC_TRIM_THRESHOLD_=65536`` pins glibc's mmap threshold at 128 KiB, so every
+#: temporary array of a chunk (a few MB each) is mmap'ed and page-faulted afresh: a
+#: worker then ran a chunk 1.6x slower than this process did (0.52 s vs 0.31 s per 1000
+#: samples, benchmarks/bench_tolerance.py). Chunks are small and short-lived, so the
+#: memory the setting would hand back is not worth it.
+_UNSET_WORKER_ENV = ("MALLOC_TRIM_THRESHOLD_",)
+
+
+def _local_cluster(n_workers: int, processes: bool):
+    """A quiet ``distributed.LocalCluster`` of single-threaded workers for :func:`monte_carlo`."""
     import logging
 
-    from distributed import Client, LocalCluster, as_completed
+    import dask
+    from distributed import LocalCluster
+
+    env = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
+           if k not in _UNSET_WORKER_ENV}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": env}):
+        return LocalCluster(n_workers=n_workers, processes=processes, threads_per_worker=1,
+                            dashboard_address=None, silence_logs=logging.ERROR)
+
+
+def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
+    """Yield ``(chunk index, result)`` as chunks finish on a Dask cluster."""
+    from distributed import Client, as_completed
 
     own_cluster = own_client = None
     try:
@@ -682,8 +733,7 @@ def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
                 client = own_client = Client(scheduler)
             else:
                 n = workers or min(os.cpu_count() or 1, 8)
-                own_cluster = LocalCluster(n_workers=n, processes=processes, threads_per_worker=1,
-                                           dashboard_address=None, silence_logs=logging.ERROR)
+                own_cluster = _local_cluster(n, processes)
                 client = own_client = Client(own_cluster)
         prob_f = client.scatter(prob, broadcast=True)
         futures = {client.submit(_run_chunk, prob_f, n, s, pure=False): i
@@ -722,7 +772,8 @@ class SensitivityResult:
         Central differences through :meth:`MirrorPatch.perturbed` / ``transformed`` and
         the exact trace [rad per rad, rad per m].
     closed_form : dict name -> dict parameter -> (b,) float
-        From eq. 1 differentiated analytically (NaN where there is none: lidar pitch).
+        From eq. 1 differentiated analytically (NaN where there is none: lidar pitch and
+        roll, which to first order only tilt beams out of the scan plane).
     """
 
     design_name: str
@@ -785,7 +836,7 @@ def sensitivities(design: Design, D: float | None = None, h_rad: float = 1e-6,
             return _bearing_at(patch.perturbed(Perturbation.from_array(a)), th, D)
 
         def b_mount(k: int, h: float, patch=patch, th=th) -> np.ndarray:
-            a = np.zeros(5)
+            a = np.zeros(6)
             a[k] = h
             mnt = LidarMount.from_array(a)
             R = mnt.rotation()
@@ -795,8 +846,9 @@ def sensitivities(design: Design, D: float | None = None, h_rad: float = 1e-6,
         for k, p in enumerate(("dalpha", "dbeta", "dd")):
             h = h_m if p == "dd" else h_rad
             fd[p] = wrap_angle(b_pert(k, h) - b_pert(k, -h)) / (2 * h)
-        for k, p in ((0, "lidar_yaw"), (1, "lidar_pitch"), (2, "lidar_x"), (3, "lidar_y")):
-            h = h_m if k >= 2 else h_rad
+        for k, p in ((0, "lidar_yaw"), (1, "lidar_pitch"), (5, "lidar_roll"), (2, "lidar_x"),
+                     (3, "lidar_y")):
+            h = h_m if p in ("lidar_x", "lidar_y") else h_rad
             fd[p] = wrap_angle(b_mount(k, h) - b_mount(k, -h)) / (2 * h)
         # closed forms from eq. 1
         n = patch.normal_
@@ -815,6 +867,7 @@ def sensitivities(design: Design, D: float | None = None, h_rad: float = 1e-6,
         db_dalpha = (db_dthr + db_doz * oz * np.tan(theta_r)) * dthr_dalpha
         cf = {"dalpha": db_dalpha, "dbeta": patch.hinge_z * db_dd, "dd": db_dd,
               "lidar_yaw": -db_dalpha, "lidar_pitch": np.full_like(th, np.nan),
+              "lidar_roll": np.full_like(th, np.nan),
               "lidar_x": -n_out[0] * db_dd, "lidar_y": -n_out[1] * db_dd}
         fd_all[m.name], cf_all[m.name] = fd, cf
     return SensitivityResult(design_name=design.spec.name, design_distance_m=D,
