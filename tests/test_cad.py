@@ -12,19 +12,19 @@ import subprocess
 import sys
 from pathlib import Path
 
+# cadquery and trimesh are hard dependencies (pyproject): a missing one is an error, not a skip
+import cadquery as cq  # noqa: TID251 (the CAD tests read STEP files back)
 import numpy as np
 import pytest
+import trimesh
+
+from nodlidar.cad.params import MountParams, mount_params_from_dict
+from nodlidar.errors import ParameterError
+from nodlidar.solver import solve
+from nodlidar.spec import load_design
+from nodlidar.verify import trace_beams
 
 pytestmark = pytest.mark.cad
-
-cq = pytest.importorskip("cadquery")
-trimesh = pytest.importorskip("trimesh")
-
-from nodlidar.cad.params import MountParams, mount_params_from_dict  # noqa: E402
-from nodlidar.errors import ParameterError  # noqa: E402
-from nodlidar.solver import solve  # noqa: E402
-from nodlidar.spec import load_design  # noqa: E402
-from nodlidar.verify import trace_beams  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "design" / "urg04lx-paper.toml"
@@ -86,7 +86,9 @@ def test_files_and_manifest(paper_export, paper_design):
     for name in manifest.printable_parts():
         assert f"parts/{name}.step" in manifest.files and f"parts/{name}.stl" in manifest.files
     d = json.loads(manifest.path.read_text())
-    assert d["parameters"]["cad"] == MountParams().to_dict()
+    from nodlidar.cad.params import mount_params_from_spec
+
+    assert d["parameters"]["cad"] == mount_params_from_spec(paper_design.spec).to_dict()
     assert d["parameters"]["design"]["layout"]["design_distance_m"] == 2.0
     assert set(d["mirror_faces"]) == {"L1", "L2", "R1", "R2"}
     for pose in d["mirror_faces"].values():
@@ -138,7 +140,8 @@ def test_step_mirror_faces_match_solver(paper_export, paper_design, state):
     for m in paper_design.mirrors:
         pose = manifest.mirror_faces[m.name][state]
         if state == "deployed":
-            # the manifest pose is the solver's patch (independent numbers, mm)
+            # the manifest carries the solver's patch (a bookkeeping check: same numbers in mm;
+            # the independent check is the STEP face found below)
             np.testing.assert_allclose(pose["origin_mm"], m.patch.origin_ * 1000, atol=1e-9)
             np.testing.assert_allclose(pose["normal"], m.patch.normal_, atol=1e-12)
             corners = m.patch.corners() * 1000
@@ -156,6 +159,123 @@ def test_step_mirror_faces_match_solver(paper_export, paper_design, state):
         assert dist.min(axis=0).max() < POS_TOL_MM
         assert dist.min(axis=1).max() < POS_TOL_MM
         np.testing.assert_allclose(face.Area(), m.patch.length * m.patch.height * 1e6, rtol=1e-6)
+
+
+def _planar_faces(solid, normal, point, tol_mm=POS_TOL_MM, tol_deg=ANG_TOL_DEG):
+    """Planar faces of ``solid`` with outward ``normal`` lying in the plane through ``point``."""
+    out = []
+    for f in solid.Faces():
+        if f.geomType() != "PLANE":
+            continue
+        n = np.array(f.normalAt().toTuple())
+        if np.degrees(np.arccos(np.clip(n @ normal, -1, 1))) > tol_deg:
+            continue
+        if abs((np.array(f.Center().toTuple()) - point) @ normal) < tol_mm:
+            out.append(f)
+    return out
+
+
+def test_printed_carriers_locate_the_glass_where_the_solver_put_it(paper_export, paper_design):
+    """The printable carrier STEP (what gets printed, not the reference glass) holds each
+    glass so that its front face is the solved patch: a datum face exactly one glass
+    thickness behind the patch plane, facing the lidar, as long as the patch plus the
+    pocket clearance, covering the glass height, and a seat face at the glass's bottom."""
+    manifest, _ = paper_export
+    spec = paper_design.spec
+    cad = manifest.parameters["cad"]
+    t_mm = spec.mirror.glass_thickness_m * 1000
+    z_lo, z_hi = -spec.mirror.glass_height_m * 500, spec.mirror.glass_height_m * 500
+    assembly = _imported_solids(manifest.file("assembly_deployed.step"))
+    for side in ("L", "R"):
+        solids = _imported_solids(manifest.file(f"parts/carrier_{side}.step"))
+        assert len(solids) == 1
+        carrier = solids[0]
+        for m in (m for m in paper_design.mirrors if m.side == side):
+            p = m.patch
+            n = p.normal_
+            datum = _planar_faces(carrier, n, p.origin_ * 1000 - t_mm * n)
+            assert len(datum) == 1, (m.name, len(datum))
+            v = np.array([x.toTuple() for x in datum[0].Vertices()])
+            s = (v - p.origin_ * 1000) @ p.along_
+            # covers the whole glass along its length, and at most the clearance more
+            assert s.min() <= p.s_min * 1000 + POS_TOL_MM and s.max() >= p.s_max * 1000 - POS_TOL_MM
+            extra = (p.s_min * 1000 - s.min()) + (s.max() - p.s_max * 1000)
+            assert extra <= cad["pocket_clearance_mm"] + POS_TOL_MM, (m.name, extra)
+            assert v[:, 2].min() <= z_lo + POS_TOL_MM and v[:, 2].max() >= z_hi - POS_TOL_MM
+            # the glass of the assembly lies on it: its back face (facing away) is coplanar
+            back = [f for g in assembly for f in _planar_faces(g, -n, p.origin_ * 1000 - t_mm * n)]
+            assert len(back) == 1, (m.name, len(back))
+        seat = _planar_faces(carrier, np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, z_lo]))
+        assert seat and max(f.Area() for f in seat) > 100.0, side   # a real ledge, not an edge
+
+
+def test_base_seats_the_lidar_with_its_scan_plane_at_z0(paper_export, paper_design):
+    """The base's top face is the lidar's housing base, scan_plane_height below z = 0."""
+    manifest, _ = paper_export
+    lidar = paper_design.lidar
+    z_seat = -lidar.scan_plane_height_m * 1000
+    base = _imported_solids(manifest.file("parts/base.step"))
+    assert len(base) == 1
+    top = _planar_faces(base[0], np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, z_seat]))
+    assert len(top) == 1
+    bb = top[0].BoundingBox()
+    hw = lidar.housing_half_width_m * 1000
+    assert bb.xmin < -hw and bb.xmax > hw and bb.ymin < -hw and bb.ymax > hw  # under the housing
+    # and the lidar envelope of the assembly stands on it
+    info = next(p for p in manifest.parts if p["name"] == "lidar")
+    assert info["bbox_mm"][0][2] == pytest.approx(z_seat, abs=POS_TOL_MM)
+    # mounting holes: 4 for the lidar (square pattern under the housing), 4 in the rim
+    cad = manifest.parameters["cad"]
+    ez = np.array([0.0, 0.0, 1.0])
+    for screw, half in ((cad["lidar_screw"], cad["lidar_hole_spacing_mm"] / 2),
+                        (cad["base_screw"], hw + cad["base_margin_mm"] / 2)):
+        holes = [p[:2] for p, d in _cylinders(base[0], MountParams.clearance_dia_mm(screw) / 2)
+                 if abs(abs(d @ ez) - 1) < 1e-9]
+        want = [(sx * half, sy * half) for sx in (-1, 1) for sy in (-1, 1)]
+        for w in want:
+            assert any(np.linalg.norm(h - w) < POS_TOL_MM for h in holes), (screw, w)
+
+
+def _cylinders(solid, radius):
+    """(point, unit direction) of every cylindrical face of ``solid`` with this radius [mm]."""
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from OCP.GeomAbs import GeomAbs_Cylinder
+
+    out = []
+    for f in solid.Faces():
+        a = BRepAdaptor_Surface(f.wrapped)
+        if a.GetType() == GeomAbs_Cylinder and abs(a.Cylinder().Radius() - radius) < 1e-6:
+            ax = a.Cylinder().Axis()
+            p, d = ax.Location(), ax.Direction()
+            out.append((np.array([p.X(), p.Y(), p.Z()]), np.array([d.X(), d.Y(), d.Z()])))
+    return out
+
+
+def _on_axis(cyl, point, direction):
+    p, d = cyl
+    off = p - point
+    return (np.linalg.norm(np.cross(d, direction)) < 1e-9
+            and np.linalg.norm(off - (off @ direction) * direction) < POS_TOL_MM)
+
+
+def test_hinge_bores_lie_on_the_lift_axis(paper_export):
+    """The axis the lifted state turns about is a real hinge: the carrier's bore and the
+    base pillar's bore (hinge pin clearance) are coaxial with it, and so is the servo's
+    horn, which carries the carrier's other end."""
+    manifest, _ = paper_export
+    cad = manifest.parameters["cad"]
+    r_pin = MountParams.clearance_dia_mm(cad["hinge_pin"]) / 2
+    base = _imported_solids(manifest.file("parts/base.step"))[0]
+    assembly = _imported_solids(manifest.file("assembly_deployed.step"))
+    names = [p["name"] for p in manifest.parts]
+    for side, ax in manifest.hinge_axes.items():
+        point, direction = np.array(ax["point_mm"]), np.array(ax["direction"])
+        carrier = _imported_solids(manifest.file(f"parts/carrier_{side}.step"))[0]
+        assert any(_on_axis(c, point, direction) for c in _cylinders(carrier, r_pin)), side
+        assert sum(_on_axis(c, point, direction) for c in _cylinders(base, r_pin)) == 1, side
+        servo = assembly[names.index(f"servo_{side}")]
+        assert any(_on_axis(c, point, direction)
+                   for c in _cylinders(servo, cad["horn_radius_mm"])), side
 
 
 def test_lifted_pose_is_rotation_about_hinge(paper_export, paper_design):
@@ -337,8 +457,9 @@ def test_ray_caster_sees_the_mounts(paper_design, meshes):
         assert set(owner[tri]) == {f"carrier_{mir.side}"}
 
 
-def test_lifted_state_touches_no_beam(paper_design, meshes):
-    _check_lifted_clear(paper_design, meshes["lifted"], MountParams().beam_band_mm)
+def test_lifted_state_touches_no_beam(paper_design, meshes, paper_export):
+    manifest, _ = paper_export
+    _check_lifted_clear(paper_design, meshes["lifted"], manifest.parameters["cad"]["beam_band_mm"])
     # and the runtime model agrees: lifted -> every beam direct
     bm = paper_design.beam_model(mirrors_deployed=False)
     assert np.all(bm.mirror_of_step == -1)
@@ -459,12 +580,48 @@ def test_cli_writes_files(tmp_path, capsys):
     assert json.loads((folder / "manifest.json").read_text())["design"] == "urg04lx-paper"
 
 
+def _paper_with(tmp_path, stem: str, **tables) -> Path:
+    """The paper's design file with some keys changed (``cad={"wall_mm": 4}``, ``name="x"``),
+    written as ``tmp_path/<stem>.toml``; works whether or not the file already has them."""
+    import tomllib
+
+    import tomli_w
+
+    data = tomllib.loads(PAPER.read_text())
+    for key, values in tables.items():
+        if isinstance(values, dict):
+            data.setdefault(key, {}).update(values)
+        else:                                   # a top-level key such as name
+            data[key] = values
+    path = tmp_path / f"{stem}.toml"
+    path.write_text(tomli_w.dumps(data))
+    return path
+
+
+def test_design_file_parameters_reach_the_parts(tmp_path):
+    """Fabrication numbers come from the design file: a [cad] table and a thicker glass in
+    [mirror] change the printed carrier (datum face deeper, back plate thicker)."""
+    from nodlidar.cli import main
+
+    assert mount_params_from_dict(MountParams().to_dict()) == MountParams()  # full table round trip
+    f = _paper_with(tmp_path, "thick", name="thick", mirror={"glass_thickness_m": 0.004},
+                    cad={"wall_mm": 4.5, "pocket_clearance_mm": 0.5})
+    assert main(["cad", str(f), "--out", str(tmp_path), "--no-preview", "--state", "deployed"]) == 0
+    man = json.loads((tmp_path / "thick" / "manifest.json").read_text())
+    assert man["parameters"]["cad"]["wall_mm"] == 4.5
+    assert man["parameters"]["design"]["mirror"]["glass_thickness_m"] == 0.004
+    design = solve(load_design(f))
+    m = design.mirror("L1")
+    carrier = _imported_solids(tmp_path / "thick" / "parts" / "carrier_L.step")[0]
+    n = m.patch.normal_
+    assert len(_planar_faces(carrier, n, m.patch.origin_ * 1000 - 4.0 * n)) == 1
+    assert len(_planar_faces(carrier, -n, m.patch.origin_ * 1000 - (4.0 + 4.5) * n)) == 1
+
+
 def test_cli_bad_cad_value_is_one_line(tmp_path, capsys):
     from nodlidar.cli import main
 
-    text = PAPER.read_text() + "\n[cad]\nwall_mm = 0.4\n"
-    bad = tmp_path / "bad.toml"
-    bad.write_text(text)
+    bad = _paper_with(tmp_path, "bad", cad={"wall_mm": 0.4})
     rc = main(["cad", str(bad), "--out", str(tmp_path / "o")])
     assert rc == 2
     err = capsys.readouterr().err.strip()
@@ -476,8 +633,7 @@ def test_cli_param_that_does_not_fit_the_design(tmp_path, capsys):
     """A [cad] value valid on its own but not for this lidar fails at build time, exit 2."""
     from nodlidar.cli import main
 
-    bad = tmp_path / "bad.toml"
-    bad.write_text(PAPER.read_text() + "\n[cad]\nlidar_hole_spacing_mm = 60.0\n")
+    bad = _paper_with(tmp_path, "bad", cad={"lidar_hole_spacing_mm": 60.0})
     rc = main(["cad", str(bad), "--out", str(tmp_path / "o")])
     assert rc == 2
     err = capsys.readouterr().err.strip()

@@ -22,6 +22,20 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _progress_bar():
+    """``progress(stage, fraction)`` for :func:`export_cad` drawing a tqdm bar on stderr."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=100, desc="CAD export", disable=None, leave=False,
+               bar_format="{desc:<32} {percentage:3.0f}%|{bar}| {elapsed}")
+
+    def progress(stage: str, fraction: float) -> None:
+        bar.set_description_str(f"CAD export: {stage}", refresh=False)
+        bar.update(max(0, round(100 * fraction) - bar.n))
+
+    return progress, bar.close
+
+
 def run(args: argparse.Namespace) -> int:
     from ..cad.params import mount_params_from_spec
     from ..solver import solve
@@ -33,8 +47,12 @@ def run(args: argparse.Namespace) -> int:
     # cadquery only from here on
     from ..cad.export import export_cad
 
-    manifest = export_cad(design, args.out, state=args.state, params=params,
-                          preview=not args.no_preview)
+    progress, close = _progress_bar()
+    try:
+        manifest = export_cad(design, args.out, state=args.state, params=params,
+                              preview=not args.no_preview, progress=progress)
+    finally:
+        close()
     if args.json:
         print(json.dumps(manifest.to_dict(), indent=2))
         return 0
