@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 
+import dynamixel_sdk as sdk  # the independent client (dev dependency): never skipped
 import numpy as np
 import pytest
 
@@ -23,8 +24,6 @@ from nodlidar.runtime.actuators import (
 )
 from nodlidar.sim.clock import ManualClock, SimClock
 from nodlidar.sim.dxl_emulator import DxlEmulator, ServoSpec
-
-sdk = pytest.importorskip("dynamixel_sdk")
 
 pytestmark = pytest.mark.timeout(60)
 

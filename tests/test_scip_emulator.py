@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import re
 import socket
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -391,4 +393,265 @@ def test_tcp_disconnect_and_return():
             assert time.monotonic() - t_down < 3
         assert time.monotonic() - t_down >= 0.15
         assert emu.stats.up_times
+        c.close()
+
+
+# --- the reference's own examples, read from the file, byte for byte --------------------
+SCIP_MD = Path(__file__).resolve().parents[2] / "shared" / "reference" / "scip2.md"
+_REQUEST_RE = re.compile(rb"(SCIP2\.0|[A-Z]{2}[0-9A-Za-z]*)(;[A-Za-z0-9 ._+@]*)?\n")
+
+
+def _reference_text() -> str:
+    assert SCIP_MD.exists(), f"{SCIP_MD} (the SCIP 2.0 reference) is missing"
+    return SCIP_MD.read_text()
+
+
+def _vectors() -> dict[int, str]:
+    """Test vectors of scip2.md §1.10 by number (their text, possibly several lines)."""
+    text = _reference_text()
+    sec = text[text.index("### 1.10 Test vectors"):]
+    found = {int(m[1]): m[2] for m in
+             re.finditer(r"^(\d+)\. (.*?)(?=^\d+\. |^\S|\Z)", sec, re.M | re.S)}
+    assert set(range(6, 17)) <= set(found), sorted(found)
+    return found
+
+
+def _quoted(vector_text: str) -> list[bytes]:
+    """The `...` (and markdown ``...``) spans of a vector, \\n escapes turned into LF."""
+    spans = [a or b for a, b in re.findall(r"`` (.+?) ``|`([^`]+)`", vector_text)]
+    return [s.replace("\\n", "\n").encode() for s in spans]
+
+
+def _values(vector_text: str) -> tuple[list[int], int | None]:
+    m = re.search(r"with (?:ranges )?(\d+), (\d+), (\d+)(?: and timestamp ([\d,]+))?",
+                  vector_text)
+    assert m, vector_text
+    return [int(m[i]) for i in (1, 2, 3)], int(m[4].replace(",", "")) if m[4] else None
+
+
+def _wants_scans(line: bytes) -> bool:
+    """A distance request, or nothing sent (waiting for the scans of a stream)."""
+    return line[:2] in (b"GD", b"GS", b"MD", b"MS") or not line
+
+
+class _DeviceWire:
+    """Host end of a bare ScipDevice on a ManualClock (no transport at all)."""
+
+    def __init__(self, source, timer_offset_ms):
+        self.clock = ManualClock()
+        self.dev = ScipDevice(URG, self.clock, source, timer_offset_ms=timer_offset_ms)
+
+    def exchange(self, line: bytes, n: int = 1) -> list[bytes]:
+        out = self.dev.handle_line(line.rstrip(b"\n"), self.clock.now())
+        while len(out) < n:  # scan data: due when the scan completes
+            self.clock.advance(URG.scan_period_s)
+            out += self.dev.poll(self.clock.now())
+        return out
+
+    def close(self):
+        pass
+
+
+class _TcpWire:
+    """The same over the emulator's TCP transport (bytes as a host receives them)."""
+
+    def __init__(self, source, timer_offset_ms):
+        self.clock = ManualClock()
+        self.emu = ScipEmulator(URG, self.clock, source, timer_offset_ms=timer_offset_ms)
+        self.client = TcpClient(self.emu.serve_tcp())
+
+    def exchange(self, line: bytes, n: int = 1) -> list[bytes]:
+        self.client.send(line)
+        got: list[bytes] = []
+        scans = _wants_scans(line)
+        while len(got) < n:
+            try:
+                got += self.client.read_messages(1, timeout=0.1 if scans else 5.0)
+            except TimeoutError:
+                assert scans, f"no reply to {line!r}"
+                self.clock.advance(URG.scan_period_s)  # the clock only moves for scans
+        return got
+
+    def close(self):
+        self.client.close()
+        self.emu.stop()
+
+
+class _PtyWire:
+    """The same through the pseudo-terminal, read with pyserial like /dev/ttyACM0."""
+
+    def __init__(self, source, timer_offset_ms):
+        self.clock = ManualClock()
+        self.emu = ScipEmulator(URG, self.clock, source, timer_offset_ms=timer_offset_ms)
+        self.ser = serial.Serial(self.emu.serve_pty(), 115200, timeout=0.1)
+        self.framer = scip.ScipFramer()
+        self.queue: list[bytes] = []
+
+    def exchange(self, line: bytes, n: int = 1) -> list[bytes]:
+        self.ser.write(line)
+        scans = _wants_scans(line)
+        deadline = time.monotonic() + 5.0
+        while len(self.queue) < n:
+            data = self.ser.read(max(1, self.ser.in_waiting))
+            if data:
+                self.queue += self.framer.feed(data)
+            elif scans:
+                self.clock.advance(URG.scan_period_s)  # the clock only moves for scans
+            else:
+                assert time.monotonic() < deadline, f"no reply to {line!r}"
+        out, self.queue = self.queue[:n], self.queue[n:]
+        return out
+
+    def close(self):
+        self.ser.close()
+        self.emu.stop()
+
+
+def _source_with(request: bytes, values_mm: list[int]):
+    req = scip.DistanceRequest.parse(request)
+
+    def source(k: int, t: float) -> np.ndarray:
+        r = np.full(URG.n_steps, 2.0)
+        r[req.start - URG.step_min: req.end - URG.step_min + 1] = np.array(values_mm) / 1000
+        return r
+
+    return source
+
+
+def _replay(wire, tokens: list[bytes]) -> int:
+    """Send each quoted request; compare each quoted reply with what came back, byte for
+    byte. A reply quoted without a new request ("already on -> ...") answers the previous
+    request sent again. Templates (``<t4><sum>``) are skipped. Returns replies checked."""
+    last, pending, checked = None, False, 0
+    for tok in tokens:
+        if b"<" in tok:
+            continue
+        if tok.endswith(b"\n\n"):
+            if not pending:
+                got = wire.exchange(last)
+            assert got == [tok], (last, got, tok)
+            pending, checked = False, checked + 1
+        elif _REQUEST_RE.fullmatch(tok):
+            got, last, pending = wire.exchange(tok), tok, True
+    return checked
+
+
+@pytest.fixture(params=["device", "tcp", "pty"])
+def wire_kind(request):
+    return {"device": _DeviceWire, "tcp": _TcpWire, "pty": _PtyWire}[request.param]
+
+
+def test_reference_exchanges_byte_for_byte(wire_kind):
+    """Vectors 10-16 of scip2.md §1.10 (requests, replies and the range values all read
+    from the file) come back from the emulator byte for byte."""
+    v = _vectors()
+    gd_values, ts = _values(v[12])
+    gs_values, ts_gs = _values(v[13])
+    checked = 0
+    # 10, 15, 16: simple commands in one session
+    w = wire_kind(None, 0)
+    try:
+        for n in (10, 15, 16):
+            checked += _replay(w, _quoted(v[n]))
+    finally:
+        w.close()
+    # 11: TM1 in adjust mode, the example's timer value 16,000,000 (m2@0)
+    w = wire_kind(None, 16_000_000)
+    try:
+        assert w.exchange(b"TM0\n") == [b"TM0\n00P\n\n"]
+        checked += _replay(w, _quoted(v[11]))
+    finally:
+        w.close()
+    # 12, 13: GD / GS with the stated ranges at the requested steps and the timestamp
+    for n, values, stamp in ((12, gd_values, ts), (13, gs_values, ts_gs or ts)):
+        toks = _quoted(v[n])
+        w = wire_kind(_source_with(toks[0], values), stamp)
+        try:
+            assert w.exchange(b"BM\n") == [b"BM\n00P\n\n"]  # GD/GS need the laser on
+            checked += _replay(w, toks)
+        finally:
+            w.close()
+    assert checked == 9  # 4 + 1 + 1 + 1 + 1 + 1 replies; a change in the file shows here
+
+
+def test_reference_md_remaining_count_echoes(wire_kind):
+    """Vector 14: the MD acknowledgement byte for byte, then scan messages whose echoes
+    count the remaining scans down, each with status line 99b; an endless request keeps
+    its echo."""
+    toks = _quoted(_vectors()[14])
+    request, ack = toks[0], toks[1]
+    first = toks[2].decode()
+    echoes = [first] + [first[:-3] + t.decode().lstrip("…") for t in toks[3:5]]
+    status, endless = toks[5], toks[6]
+    assert status == b"99b" and len(echoes) == 3
+    w = wire_kind(None, 0)
+    try:
+        assert w.exchange(request) == [ack]
+        assert ack == request.rstrip(b"\n") + b"\n00P\n\n"
+        msgs = w.exchange(b"", 3)  # nothing sent: the three scans as they become due
+        assert [m.split(b"\n")[0].decode() for m in msgs] == echoes
+        assert all(m.split(b"\n")[1] == status for m in msgs)
+        assert [scip.decode_scan(m).ranges_mm.size for m in msgs] == [682] * 3
+        msgs = w.exchange(endless + b"\n", 4)[1:]  # the ack, then scans
+        assert [m.split(b"\n")[0] for m in msgs] == [endless] * 3
+    finally:
+        w.close()
+
+
+def test_reference_info_replies_byte_for_byte(manual_tcp):
+    """Vectors 6, 7 and 9: the PP block of §1.5 exactly; VV with the WIKI's version
+    strings configured; II at the WIKI's timer value (0x081615 ms) - each line with the
+    checksum the reference prints."""
+    text = _reference_text()
+    block = text[text.index("```\nPP\n00P") + 4:]
+    block = block[: block.index("(empty line)")]
+    pp_ref = block.encode() + b"\n"
+    emu, clock, c = manual_tcp
+    assert c.ask(b"PP\n") == [pp_ref]
+    v = _vectors()
+    vv_lines = _quoted(v[7])
+    assert len(vv_lines) == 5
+    info = dict(ln[:-2].decode().split(":", 1) for ln in vv_lines)
+    version = scip.VersionInfo(info["VEND"], info["PROD"], info["FIRM"], info["PROT"],
+                               info["SERI"])
+    dev = ScipDevice(URG, ManualClock(), version=version)
+    assert dev.handle_line(b"VV", 0.0) == [b"VV\n00P\n" + b"\n".join(vv_lines) + b"\n\n"]
+    ii_lines = _quoted(v[9])
+    assert [ln[:5] for ln in ii_lines] == [b"LASR:", b"SCSP:", b"MESM:", b"SBPS:", b"TIME:",
+                                          b"STAT:"]
+    t_ms = int(ii_lines[4][5:-2].decode(), 16)
+    dev = ScipDevice(URG, ManualClock(), timer_offset_ms=t_ms)
+    modl = pp_ref.split(b"\n")[2]
+    assert dev.handle_line(b"II", 0.0) == [b"II\n00P\n" + modl + b"\n" + b"\n".join(ii_lines)
+                                           + b"\n\n"]
+    # vector 8: a real UG01's VV lines, as this codec's info lines
+    for line in _quoted(v[8]):
+        key, value = line[:-2].decode().split(":", 1)
+        assert scip.info_line(key, value) == line
+
+
+def test_ss_and_cr_accepted():
+    dev = ScipDevice(URG, ManualClock())
+
+    def status(line: bytes) -> str:
+        return scip.parse_reply(dev.handle_line(line, 0.0)[0]).status
+
+    assert status(b"SS115200") == "00" and status(b"SS115200") == "03"
+    assert scip.parse_state(dev.handle_line(b"II", 0.0)[0]).bitrate == "115200[bps]"
+    assert status(b"CR05") == "00" and status(b"CR99") == "00"
+    assert status(b"RS") == "00"  # bit rate back to the default
+    assert scip.parse_state(dev.handle_line(b"II", 0.0)[0]).bitrate.startswith("19200[bps]")
+
+
+def test_delay_fault_holds_a_message_back():
+    inj = FaultInjector(FaultConfig(delay_prob=1.0, delay_s=0.25))
+    act = inj.apply(b"BM\n00P\n\n")
+    assert (act.wait_s, act.stalled, act.data) == (0.25, False, b"BM\n00P\n\n")
+    with ScipEmulator(URG, SimClock(rate=1.0), faults=FaultConfig(delay_prob=1.0,
+                                                                  delay_s=0.25)) as emu:
+        c = TcpClient(emu.serve_tcp())
+        t0 = time.monotonic()
+        assert c.ask(b"BM\n") == [b"BM\n00P\n\n"]  # intact, only late
+        assert time.monotonic() - t0 >= 0.25
+        assert emu.stats.stalls == 0
         c.close()

@@ -115,12 +115,12 @@ def test_plane_ranges_match_closed_form(design, perturbed, nod):
     assert use.sum() > (500 if perturbed else 670)  # nearly all beams are checked
     assert direct[use].sum() >= 200 and (~direct[use]).sum() >= 300  # both kinds
     assert np.all(s.object_id[use] == HIT_STATIC)
-    assert_allclose(s.true_range_m[use], want[use], rtol=0, atol=1e-6)  # float64 closed forms
+    assert_allclose(s.true_range_m[use], want[use], rtol=0, atol=TRUE_TOL_M)  # float64 closed forms
     assert np.max(np.abs(s.range_m[use] - want[use])) <= MM_TOL_M
     # the beams it reflected are exactly the ones the closed form says hit their mirror
     assert np.array_equal(s.mirror[use] >= 0, ~direct[use])
     # hit points lie on the plane
-    assert_allclose((s.point_world[use] - c) @ n, 0.0, atol=1e-6)
+    assert_allclose((s.point_world[use] - c) @ n, 0.0, atol=TRUE_TOL_M)
 
 
 @pytest.mark.parametrize("perturbed", [False, True])
@@ -170,7 +170,7 @@ def test_lifted_mirrors_send_reflected_window_beams_direct(design):
         tx = np.where(np.cos(th) > 0, (cx + lx / 2) / np.cos(th), (cx - lx / 2) / np.cos(th))
         ty = np.where(np.sin(th) > 0, (cy + ly / 2) / np.sin(th), (cy - ly / 2) / np.sin(th))
     want = np.minimum(np.abs(tx), np.abs(ty))
-    assert_allclose(lif.true_range_m, want, atol=1e-6)
+    assert_allclose(lif.true_range_m, want, atol=TRUE_TOL_M)
     # the middle window does not care about the mirrors
     assert_allclose(lif.true_range_m[~win], dep.true_range_m[~win], atol=1e-12)
     # only the left side lifted: left window direct, right window still reflected

@@ -144,18 +144,29 @@ def test_noise_and_perturbations_reach_the_wire(design):
     assert np.any(truth.mirror != design.mirror_of_step)  # Table I moves beams
 
 
-def test_emulate_command_prints_urls_and_serves(tmp_path):
+@pytest.mark.parametrize("transport", ["tcp", "pty"])
+def test_emulate_command_prints_urls_and_serves(tmp_path, capsys, transport):
+    """`nodlidar emulate` as a process; the printed connect line, run as a command, finds
+    the lidar and the three servos; the runtime drivers get the wall's ranges."""
+    from nodlidar.cli import main
+
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(
         [sys.executable, "-m", "nodlidar.cli", "emulate", "--design", str(PAPER), "--scene", "wall",
-         "--tcp", "--no-noise"],
+         "--no-noise"] + (["--tcp"] if transport == "tcp" else []),
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env)
     try:
         lines = [proc.stdout.readline() for _ in range(4)]
         urls = {ln.split(":", 1)[0]: ln.split(":", 1)[1].strip() for ln in lines if "URL" in ln}
-        assert urls["lidar URL"].startswith("socket://127.0.0.1:")
-        assert urls["servo URL"].startswith("socket://127.0.0.1:")
-        assert "nodlidar info --port socket://" in lines[3]
+        prefix = "socket://127.0.0.1:" if transport == "tcp" else "/dev/"
+        assert urls["lidar URL"].startswith(prefix) and urls["servo URL"].startswith(prefix)
+        connect = lines[3].split(":", 1)[1].split()
+        assert connect == ["nodlidar", "info", "--port", urls["lidar URL"], "--servo-port",
+                           urls["servo URL"]]
+        capsys.readouterr()
+        assert main(connect[1:]) == 0
+        out = capsys.readouterr().out
+        assert "SCIP 2.0" in out and "servos found: 3" in out and "(mirror_left)" in out
         with UrgDriver(urls["lidar URL"]) as urg:
             s = urg.scan()
         front = s.steps == 384  # straight ahead at the default 1.5 m wall

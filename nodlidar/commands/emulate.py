@@ -32,6 +32,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from ..errors import ParameterError
     from ..paper import TABLE_I_PERTURBATIONS
+    from ..sim.scene import load_scene
     from ..sim.sensor import SimulatedSensor
     from ..solver import solve
     from ..spec import load_design
@@ -40,7 +41,7 @@ def run(args) -> int:
         raise ParameterError("--rate", args.rate, "> 0")
     design = solve(load_design(args.design))
     perturbations = dict(TABLE_I_PERTURBATIONS) if args.perturb == "table1" else None
-    sim = SimulatedSensor(design, args.scene, perturbations=perturbations,
+    sim = SimulatedSensor(design, load_scene(args.scene), perturbations=perturbations,
                           transport="tcp" if args.tcp else "pty", rate=args.rate,
                           noise=not args.no_noise, seed=args.seed)
     stop = threading.Event()
@@ -58,7 +59,7 @@ def run(args) -> int:
                   f"noise {'off' if args.no_noise else 'on'}, rate {args.rate:g}x")
             print(f"lidar URL: {sim.lidar_url}")
             print(f"servo URL: {sim.servo_url}")
-            print(f"connect:   nodlidar info --port {sim.lidar_url}")
+            print(f"connect:   nodlidar info --port {sim.lidar_url} --servo-port {sim.servo_url}")
             print(f"           nodlidar scan --port {sim.lidar_url} --servo-port {sim.servo_url}")
             print("servos:    1 = nod (angle = head pitch), 2 = mirror_left, 3 = mirror_right "
                   "(0 deployed, pi/2 lifted); Ctrl-C to stop")

@@ -37,6 +37,11 @@ class FaultConfig:
     stall_at, disconnect_at : tuple of int
         Message numbers (0-based, counting messages the fault layer saw) at which a
         stall / disconnect happens for sure - for deterministic tests.
+    garble_at : tuple of int
+        Message numbers in which one character gets its lowest bit flipped (still
+        printable ASCII; its line's checksum catches it): the last content character of
+        the first line after the status (before ``;<sum>`` on VV/PP/II lines, before the
+        sum otherwise), or the status itself if the message has no such line.
     scans_only : bool
         Apply the faults only to scan messages (GD/GS/MD/MS data), not to replies.
     skip_messages : int
@@ -54,6 +59,7 @@ class FaultConfig:
     disconnect_s: float = 0.0
     stall_at: tuple[int, ...] = ()
     disconnect_at: tuple[int, ...] = ()
+    garble_at: tuple[int, ...] = ()
     scans_only: bool = False
     skip_messages: int = 0
 
@@ -71,7 +77,8 @@ class FaultConfig:
     def active(self) -> bool:
         """True if any fault can happen."""
         return any((self.drop_byte_prob, self.corrupt_byte_prob, self.delay_prob,
-                    self.stall_prob, self.disconnect_prob, self.stall_at, self.disconnect_at))
+                    self.stall_prob, self.disconnect_prob, self.stall_at, self.disconnect_at,
+                    self.garble_at))
 
 
 @dataclass(frozen=True)
@@ -127,14 +134,18 @@ class FaultInjector:
             wait += cfg.delay_s
         data = message
         dropped = corrupted = 0
+        if n in cfg.garble_at:
+            data, hit = _garble_one(data)
+            corrupted += hit
         if cfg.corrupt_byte_prob or cfg.drop_byte_prob:
-            a = np.frombuffer(message, dtype=np.uint8).copy()
+            a = np.frombuffer(data, dtype=np.uint8).copy()
             if cfg.corrupt_byte_prob:
                 hit = rng.random(a.size) < cfg.corrupt_byte_prob
-                corrupted = int(hit.sum())
-                if corrupted:
+                n_hit = int(hit.sum())
+                corrupted += n_hit
+                if n_hit:
                     # add 1..255 so the byte surely changes
-                    a[hit] = (a[hit].astype(np.int32) + rng.integers(1, 256, corrupted)) % 256
+                    a[hit] = (a[hit].astype(np.int32) + rng.integers(1, 256, n_hit)) % 256
             if cfg.drop_byte_prob:
                 keep = rng.random(a.size) >= cfg.drop_byte_prob
                 dropped = int(a.size - keep.sum())
@@ -142,3 +153,21 @@ class FaultInjector:
             data = a.tobytes()
         return FaultAction(data, wait_s=wait, stalled=stalled, dropped=dropped,
                            corrupted=corrupted)
+
+
+def _garble_one(message: bytes) -> tuple[bytes, int]:
+    """Flip the lowest bit of one character (see ``FaultConfig.garble_at``)."""
+    a = bytearray(message)
+    echo_end = message.find(b"\n")
+    status_end = message.find(b"\n", echo_end + 1)
+    if echo_end < 0 or status_end < 0:
+        return message, 0
+    line_end = message.find(b"\n", status_end + 1)
+    if line_end > status_end + 2:  # a line with content and a sum
+        i = line_end - 2  # the last content character
+        if a[i] == 0x3B and i > status_end + 1:  # ';' of a KEY:VALUE;S line
+            i -= 1
+    else:
+        i = echo_end + 1  # the status
+    a[i] ^= 0x01
+    return bytes(a), 1

@@ -5,9 +5,10 @@ Independent of :class:`~nodlidar.beams.BeamModel` on purpose (the two check each
 1. Every beam leaves the lidar origin along ``LidarModel.bearing_from_step`` (head frame)
    at its own time ``t_scan + step * step_period`` (``t_scan`` is the SCIP timestamp of the
    scan, which refers to step 0: conventions.md).
-2. In the head frame it is tested against every mirror as a finite rectangle
-   (:meth:`MirrorPatch.intersect`), the patches being ``design.patches(perturbations)`` (the
-   "as built" ground truth) turned about their hinge by the lift state at the beam's time.
+2. In the head frame it is cast with embree against every mirror as finite geometry: a
+   two-triangle mesh of each patch of ``design.patches(perturbations)`` (the "as built"
+   ground truth), turned about its hinge by the lift state at the beam's time (the ray is
+   turned back into the unturned patch's frame, so each beam may see its own lift state).
    The nearest mirror hit reflects it (:func:`~nodlidar.geometry.reflect`); up to
    ``max_bounces`` times. A beam meeting a mirror's back is absorbed (no return).
 3. The outgoing ray is taken to the world at the beam's time: the nod pitch about
@@ -38,7 +39,7 @@ import numpy as np
 
 from ..geometry import MirrorPatch, Perturbation, reflect
 from ..lidar import LidarModel
-from .scene import HIT_NONE, HIT_STATIC, Scene, load_scene
+from .scene import HIT_NONE, HIT_STATIC, Scene, builtin_scene
 
 __all__ = ["ScanTruth", "SceneSimulator", "measure", "lift_fraction", "rotate_about_axis"]
 
@@ -159,7 +160,8 @@ class SceneSimulator:
     design : Design
         Solved design: the lidar, the mirrors, the nod pivot, the lift geometry.
     scene : Scene, str or None
-        Scene, built-in name or TOML path (default ``"room"``).
+        Scene or built-in name (default ``"room"``). A TOML file is read by the caller
+        (:func:`~.scene.load_scene`), not here: constructors do no I/O.
     perturbations : mapping name -> Perturbation, optional
         "As built" mirror errors (ground truth), e.g. ``nodlidar.paper.TABLE_I_PERTURBATIONS``.
     max_bounces : int
@@ -172,7 +174,7 @@ class SceneSimulator:
                  perturbations: Mapping[str, Perturbation] | None = None, *, max_bounces: int = 2):
         self.design = design
         self.lidar: LidarModel = design.lidar
-        self.scene = load_scene(scene)
+        self.scene = scene if isinstance(scene, Scene) else builtin_scene(scene or "room")
         self.perturbations = dict(perturbations or {})
         self.patches: list[MirrorPatch] = design.patches(self.perturbations)
         self.mirror_sides = np.array([m.side for m in design.mirrors])
@@ -193,13 +195,17 @@ class SceneSimulator:
             self._face_part = np.zeros(0, dtype=int)
             self._static = None
         self._movers = [_MeshCaster(m.mesh()) for m in self.scene.movers]
+        # each mirror's glass as a mesh of its own (two triangles): beams are cast at it in
+        # its unturned frame, one embree call per mirror and bounce
+        self._mirrors = [_MeshCaster(trimesh.Trimesh(p.corners(), [[0, 1, 2], [0, 2, 3]],
+                                                     process=False)) for p in self.patches]
         self._head_cache: dict[tuple[float, float], tuple] = {}
 
     # -- pieces ------------------------------------------------------------------------
     def beam_times(self, t_scan_s: float, steps: np.ndarray | None = None) -> np.ndarray:
         """Time [s] of each step's measurement in the scan stamped ``t_scan_s`` (step 0)."""
         steps = self.lidar.steps if steps is None else np.asarray(steps)
-        return t_scan_s + self.lidar.first_step_offset_s + self.lidar.time_offset_from_step(steps)
+        return self.lidar.beam_time_s(t_scan_s, steps)
 
     def head_rays(self, steps: np.ndarray, lift_left: np.ndarray | float = 0.0,
                   lift_right: np.ndarray | float = 0.0):
@@ -243,8 +249,8 @@ class SceneSimulator:
                     nrm = rotate_about_axis(np.broadcast_to(p.normal_, (n, 3)), p.along_, ang)
                 else:
                     ol, dl, nrm = o, d, np.broadcast_to(p.normal_, (n, 3))
-                t, _, _ = p.intersect(ol, dl)
-                t = np.where(alive & (last != i), t, np.inf)
+                t, _ = self._mirrors[i].cast(ol, dl)
+                t = np.where(alive & (last != i) & (t > 0), t, np.inf)
                 closer = t < best_t
                 best_t = np.where(closer, t, best_t)
                 best_m = np.where(closer, i, best_m)

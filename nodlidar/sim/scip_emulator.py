@@ -151,6 +151,9 @@ class EmulatorStats:
     disconnects: int = 0
     #: wall-clock (time.monotonic) instants the link came back after a disconnect
     up_times: list[float] = field(default_factory=list)
+    #: wall-clock (time.monotonic) instants a stall would end (the device resumes
+    #: sending); a host that reconnects during a stall ends it earlier
+    stall_ends: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -216,6 +219,12 @@ class ScipDevice:
         """A new host connection: stop sending scans (the link they were for is gone)."""
         self.stream = None
         self._pending_gd.clear()
+
+    def reset_timer(self, t: float) -> None:
+        """Make the timer read 0 at simulated time ``t`` [s] (``RS``, a power cycle).
+
+        :meth:`scan_index` then maps the new timer's timestamps."""
+        self._timer_base_ms = int(round(t * 1000.0))
 
     def timer_ms(self, t: float) -> int:
         """Device timer at simulated time ``t`` [ms], 24-bit."""
@@ -305,7 +314,7 @@ class ScipDevice:
             # RS: laser off, motor speed and bit rate to default, timer reset (SPEC §8.5)
             self.power_on()
             self.scip1 = False
-            self._timer_base_ms = int(round(now * 1000.0))
+            self.reset_timer(now)
             return reply("00")
         if code == "TM":
             if params == "0":
@@ -366,14 +375,17 @@ class ScipDevice:
         return reply("0E")
 
     def _state(self, now: float) -> scip.SensorState:
+        # texts as in the URG-04LX II example of the URG wiki (scip2.md §1.10 vector 9),
+        # "<-Default setting by user" while speed / bit rate are at their defaults
         streaming = self.stream is not None
+        default = "<-Default setting by user"
         return scip.SensorState(
             model=self.params.model, laser="ON" if self.laser_on else "OFF",
-            motor_speed=f"Initial({round(self.model.rpm)}[rpm])" if self.motor_level == 0
+            motor_speed=f"Initial({round(self.model.rpm)}[rpm]){default}" if self.motor_level == 0
             else f"Level {self.motor_level}",
             measure_mode="Measuring by Sensitive Mode" if streaming else "IDLE",
-            bitrate=f"{int(self.bitrate)}[bps]", time=f"{self.timer_ms(now):06X}",
-            status="Sensor works well.")
+            bitrate=f"{int(self.bitrate)}[bps]" + (default if self.bitrate == "019200" else ""),
+            time=f"{self.timer_ms(now):06X}", status="Sensor works well.")
 
     # -- scans -----------------------------------------------------------------------
     def next_due(self) -> float | None:
@@ -477,6 +489,9 @@ class ScipEmulator:
         Link faults to inject on outgoing messages.
     scip1 : bool
         Boot (and reboot after a disconnect) in SCIP 1.1 mode.
+    reboot_resets_timer : bool
+        A disconnect is a power cycle: the device comes back with its timer restarted at
+        0 (a real URG unplugged and plugged in). Default False: the timer runs on.
     **device_kw
         Passed to :class:`ScipDevice` (``timer_offset_ms``, ``codes``, ...).
 
@@ -488,8 +503,9 @@ class ScipEmulator:
 
     def __init__(self, model: LidarModel | None = None, clock: SimClock | None = None,
                  range_source: RangeSource | None = None, *, faults: FaultConfig | None = None,
-                 scip1: bool = False, **device_kw):
+                 scip1: bool = False, reboot_resets_timer: bool = False, **device_kw):
         self.model = model or lidar_model("URG-04LX")
+        self.reboot_resets_timer = bool(reboot_resets_timer)
         self.clock = clock or SimClock()
         self.device = ScipDevice(self.model, self.clock, range_source, scip1=scip1, **device_kw)
         self.faults = FaultInjector(faults)
@@ -651,6 +667,7 @@ class ScipEmulator:
         if act.wait_s > 0:
             if act.stalled:
                 st.stalls += 1
+                st.stall_ends.append(time.monotonic() + act.wait_s / self.clock.rate)
             if not self.clock.sleep_until(self.clock.now() + act.wait_s, stop):
                 return False
         link.write(act.data)
@@ -660,6 +677,8 @@ class ScipEmulator:
     def _go_down(self, down_s: float) -> None:
         """Link lost: the device reboots and is reachable again after ``down_s``."""
         self.device.power_on()
+        if self.reboot_resets_timer:  # the timer reads 0 when the device is back
+            self.device.reset_timer(self.clock.now() + down_s)
         if self._listener is None:  # pty: the pty loop re-creates the terminal
             self._pty_down = down_s
         else:

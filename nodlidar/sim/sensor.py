@@ -48,8 +48,8 @@ class SimulatedSensor:
     design : Design
         Solved design (lidar model, mirrors, nod pivot, lift angle).
     scene : Scene, str or None
-        Scene, built-in name (``room``, ``paper-tracking``, ``wall``) or TOML path;
-        default ``room``.
+        Scene or built-in name (``room``, ``paper-tracking``, ``wall``); default ``room``.
+        Read a TOML scene with :func:`~nodlidar.sim.scene.load_scene` first.
     perturbations : mapping mirror name -> Perturbation, optional
         "As built" mirror errors (e.g. ``nodlidar.paper.TABLE_I_PERTURBATIONS``).
     transport : str

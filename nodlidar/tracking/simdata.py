@@ -48,6 +48,8 @@ class ScanPoints:
         Path length before ``ray_start`` [m]: the point is ``start + (r - offset) dir``.
     truth_id : (n,) int or None
         Ground truth object id (-1 none, 0 static, 1 + k mover k), when known.
+    calibration_id : str
+        The calibration the points were projected with (``"none"``: the design as is).
     """
 
     scan: int
@@ -60,6 +62,7 @@ class ScanPoints:
     ray_dir: np.ndarray
     ray_offset: np.ndarray
     truth_id: np.ndarray | None = None
+    calibration_id: str = "none"
 
     @property
     def valid(self) -> np.ndarray:
@@ -124,9 +127,10 @@ def simulate_scans(design, n_scans: int, *, mirrors_deployed: bool = True,
     list of ScanPoints, with ``truth_id`` from the simulator.
     """
     from ..sim.raycast import SceneSimulator
+    from ..sim.scene import load_scene
 
     require(n_scans >= 1, "n_scans", n_scans, ">= 1")
-    sim = simulator or SceneSimulator(design, scene, perturbations)
+    sim = simulator or SceneSimulator(design, load_scene(scene), perturbations)
     bm = design.beam_model(perturbations, mirrors_deployed=mirrors_deployed)
     lift = 0.0 if mirrors_deployed else 1.0
     nod = None if t0_s == 0.0 else (lambda t: design.spec.nod.pitch_at(t, t0_s))
