@@ -52,6 +52,7 @@ __all__ = [
     "encode_scan_reply",
     "encode_info_reply",
     "info_line",
+    "info_line_verifies",
     "split_command",
     "command",
     "DistanceRequest",
@@ -1055,6 +1056,13 @@ def ranges_mm_to_m(ranges_mm: np.ndarray, dmin_mm: int = 20) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 # VV / PP / II
 # ---------------------------------------------------------------------------------------
+def info_line_verifies(line: bytes) -> bool:
+    """Does a VV/PP/II ``KEY:VALUE;S`` line verify under any checksum rule seen on real
+    firmware (``;`` excluded as documented; urg_library's n-1/n-2 byte fallbacks; the
+    UTM-30LX's excluded ``<-`` comment)?"""
+    return _info_line_ok(line)
+
+
 def _info_line_ok(line: bytes) -> bool:
     """Does a ``KEY:VALUE;S`` line verify under any rule seen on real firmware?"""
     if len(line) < 2:

@@ -226,3 +226,9 @@ def test_pose_track_matches_scipy_slerp():
     for j in range(3):
         assert_allclose(got[:, j, 3], np.interp(qc, ts, T[:, j, 3]), atol=1e-12, rtol=0)
     assert_allclose(got[-8:], T, atol=1e-12, rtol=0)  # at the keyframes: the poses
+    # apply(): the same poses on points without the (n, 4, 4) matrices
+    pts = rng.normal(0, 3, (q.size, 3))
+    want = np.einsum("nij,nj->ni", got[:, :3, :3], pts) + got[:, :3, 3]
+    assert_allclose(PoseTrack(ts, T).apply(q, pts), want, atol=1e-12, rtol=0)
+    one = PoseTrack(ts[:1], T[:1])
+    assert_allclose(one.apply(q, pts), pts @ T[0, :3, :3].T + T[0, :3, 3], atol=1e-12, rtol=0)

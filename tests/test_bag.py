@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -17,7 +18,14 @@ from numpy.testing import assert_allclose, assert_array_equal
 from nodlidar import scip
 from nodlidar.errors import DesignFileError, NodlidarError
 from nodlidar.lidar import lidar_model
-from nodlidar.runtime.bag import BagRecorder, iter_messages, read_bag, recover_bag, replay_bag
+from nodlidar.runtime.bag import (
+    BagRecorder,
+    iter_messages,
+    read_bag,
+    read_recording,
+    recover_bag,
+    replay_bag,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 DESIGN_TOML = (ROOT / "design" / "urg04lx-paper.toml").read_text()
@@ -92,7 +100,7 @@ def test_unclosed_bag_recovered(tmp_path):
     rec.write_scan(fake_scan(4, rng), URG)  # in flight: not committed
     assert not (tmp_path / "b" / "metadata.yaml").exists()
     # the process "dies" here: the connection is never committed or closed
-    os.system(f"cp -r {tmp_path / 'b'} {tmp_path / 'copy'}")  # the files as a kill leaves them
+    shutil.copytree(tmp_path / "b", tmp_path / "copy")  # the files as a kill leaves them
     assert recover_bag(tmp_path / "copy") is True
     assert recover_bag(tmp_path / "copy") is False  # idempotent
     back = read_bag(tmp_path / "copy")
@@ -135,6 +143,17 @@ def test_recover_bad_paths(tmp_path):
     with pytest.raises(DesignFileError, match="no scans"):
         replay_bag(tmp_path / "nodesign")
     assert rec.scans == 0
+    rng = np.random.default_rng(2)
+    with BagRecorder(tmp_path / "nonod", DESIGN_TOML, extra={"dmin_mm": 20}) as rec:
+        rec.write_scan(fake_scan(0, rng), URG)
+        rec.write_samples("mirror_left", np.array([12.0]), np.array([0.0]))
+    with pytest.raises(DesignFileError, match="no nod servo samples"):
+        read_recording(tmp_path / "nonod")
+    with pytest.raises(DesignFileError, match="not found"):
+        read_recording(tmp_path / "nope")
+    write_bag(tmp_path / "good")
+    good = read_recording(tmp_path / "good")
+    assert len(good.scans) == 5 and "nod" in good.joints
 
 
 def _wait_for(cond, timeout_s: float) -> bool:

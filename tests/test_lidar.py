@@ -15,13 +15,13 @@ SCIP_MD = Path(__file__).resolve().parents[2] / "shared" / "reference" / "scip2.
 
 def _pp_block():
     """The URG-04LX PP example of the reference, parsed (KEY -> value string)."""
+    assert SCIP_MD.exists(), f"{SCIP_MD} (the SCIP 2.0 reference) is missing"
     text = SCIP_MD.read_text()
     block = text[text.index("```\nPP\n00P"):]
     block = block[: block.index("(empty line)")]
     return dict(re.findall(r"^([A-Z]{4}):([^;]*);", block, re.M))
 
 
-@pytest.mark.skipif(not SCIP_MD.exists(), reason="shared/ reference not present")
 def test_urg04lx_matches_the_pp_reply_in_the_reference():
     pp = _pp_block()
     m = lidar_model("URG-04LX")

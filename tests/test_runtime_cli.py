@@ -45,7 +45,7 @@ def test_info_simulated(capsys, transport):
 @pytest.mark.parametrize("transport", ["pty", "tcp"])
 def test_commands_with_explicit_ports(capsys, tmp_path, transport):
     """The same commands given device URLs (the emulators served over a pty or TCP, real
-    time, as hardware would be): info and a full sweep."""
+    time, as hardware would be): info, a full sweep, a short recording and its replay."""
     with SimulatedSensor(DESIGN, "room", transport=transport, rate=1.0) as sim:
         ports = ["--port", sim.lidar_url, "--servo-port", sim.servo_url]
         if transport == "tcp":
@@ -56,8 +56,15 @@ def test_commands_with_explicit_ports(capsys, tmp_path, transport):
         code, out, err = run(capsys, "info", "--port", sim.lidar_url)
         assert code == 0, err
         assert "URG-04LX" in out and "servos: not queried" in out
+        code, out, err = run(capsys, "record", *ports, "--out", str(tmp_path / "bag"),
+                             "--scans", "5")
+        assert code == 0, err
+        assert "recorded 5 scans" in out
         code, out, err = run(capsys, "scan", *ports, "--out", str(tmp_path / "c.pcd"))
         assert code == 0, err
+    code, rep_out, rep_err = run(capsys, "replay", str(tmp_path / "bag"))
+    assert code == 0, rep_err
+    assert rep_out.startswith("5 scans,") and int(rep_out.split("-> ")[1].split()[0]) > 2000
     cloud = read_cloud(tmp_path / "c.pcd")
     n_scans = len(np.unique(cloud.scan))
     # one ramp of 0.7 rad at 0.35 rad/s is 2 s = 20 scans at 10 Hz (+1 for the overlap)

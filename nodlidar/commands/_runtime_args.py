@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 
@@ -32,13 +33,19 @@ def add_device_args(p, *, design: bool = True) -> None:
                         "default none = built exactly as designed)")
 
 
+def _stderr(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
 def session_from_args(args):
+    """The :class:`~nodlidar.runtime.session.Session` the options describe; its status and
+    progress lines go to stderr."""
     from ..runtime.session import Session
 
     return Session(getattr(args, "design", None), port=args.port, servo_port=args.servo_port,
                    calibration=getattr(args, "calibration", None), transport=args.sim_transport,
                    sim_rate=args.sim_rate, scene=args.scene, noise=not args.no_noise,
-                   sim_perturbations=sim_perturbations(args.perturb))
+                   sim_perturbations=sim_perturbations(args.perturb), log=_stderr)
 
 
 def sim_perturbations(name: str):

@@ -249,6 +249,36 @@ class PoseTrack:
             out[:, j, 3] = np.interp(tq, ts, T[:, j, 3])
         return out
 
+    def apply(self, t: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Points ``p`` (n, 3) [m] in the robot frame at times ``t`` (n,) [s] -> world
+        frame: the same interpolated poses as :meth:`at`, applied without building the
+        (n, 4, 4) matrices (Rodrigues' formula on the vectors, then the keyframe rotation
+        column by column) - the costly part of assembly otherwise."""
+        from scipy.spatial.transform import Rotation
+
+        t = np.asarray(t, dtype=float)
+        p = np.asarray(p, dtype=float)
+        T = np.asarray(self.world2robot, float)
+        ts = np.asarray(self.t_s, float)
+        if ts.size == 1:
+            return p @ T[0, :3, :3].T + T[0, :3, 3]
+        tq = np.clip(t, ts[0], ts[-1])
+        R = T[:, :3, :3]
+        w = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()
+        i = np.clip(np.searchsorted(ts, tq, side="right") - 1, 0, ts.size - 2)
+        f = (tq - ts[i]) / (ts[i + 1] - ts[i])
+        v = f[:, None] * w[i]  # rotation vector from keyframe i, (n, 3)
+        th = np.linalg.norm(v, axis=1)
+        safe = np.where(th > 1e-12, th, 1.0)
+        k = v / safe[:, None]
+        c, s = np.cos(th)[:, None], np.sin(th)[:, None]
+        q = p * c + np.cross(k, p) * s + k * (np.sum(k * p, axis=1)[:, None] * (1.0 - c))
+        Ri = R[i]  # (n, 3, 3)
+        out = Ri[:, :, 0] * q[:, :1] + Ri[:, :, 1] * q[:, 1:2] + Ri[:, :, 2] * q[:, 2:]
+        for j in range(3):
+            out[:, j] += np.interp(tq, ts, T[:, j, 3])
+        return out
+
 
 @dataclass(frozen=True, eq=False)
 class AssemblyModel:
@@ -338,7 +368,9 @@ def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     """``T`` (4, 4) or (n, 4, 4) applied to points ``p`` (n, 3)."""
     if T.ndim == 2:
         return p @ T[:3, :3].T + T[:3, 3]
-    return np.einsum("nij,nj->ni", T[:, :3, :3], p) + T[:, :3, 3]
+    # column by column: much faster than a batched einsum of 3x3 products
+    return (T[:, :3, 0] * p[:, :1] + T[:, :3, 1] * p[:, 1:2] + T[:, :3, 2] * p[:, 2:]
+            + T[:, :3, 3])
 
 
 def _check_transform(T, name: str) -> np.ndarray:
@@ -440,14 +472,16 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
         xyz = _apply(robot2sensor, xyz)
     if frame == "world":
         if isinstance(world2robot, PoseTrack):
-            W = world2robot.at(t)
+            W = None
+            xyz = world2robot.apply(t, xyz)
         elif callable(world2robot):
             W = np.asarray(world2robot(t), dtype=float)
             if W.shape not in ((4, 4), (len(t), 4, 4)):
                 raise ParameterError("world2robot(t).shape", W.shape, f"(4, 4) or ({len(t)}, 4, 4)")
         else:
             W = _check_transform(world2robot, "world2robot")
-        xyz = _apply(W, xyz)
+        if W is not None:
+            xyz = _apply(W, xyz)
 
     stats = AssemblyStats(beams=n_beams, error_codes=n_err, no_nod=n_no_nod,
                           mirror_moving=n_moving, blocked=n_blocked, points=len(r))

@@ -39,8 +39,8 @@ import numpy as np
 from ..errors import DesignFileError, NodlidarError
 from .actuators import MirrorLiftProfile
 
-__all__ = ["BagRecorder", "BagContents", "read_bag", "recover_bag", "replay_bag", "JOINTS",
-           "DESIGN_TOPIC", "RAW_TOPIC", "SCAN_TOPIC", "JOINT_TOPIC"]
+__all__ = ["BagRecorder", "BagContents", "read_bag", "read_recording", "recover_bag", "replay_bag",
+           "JOINTS", "DESIGN_TOPIC", "RAW_TOPIC", "SCAN_TOPIC", "JOINT_TOPIC"]
 
 DESIGN_TOPIC = "/nodlidar/design"
 RAW_TOPIC = "/scan/raw"
@@ -192,7 +192,8 @@ def recover_bag(path: str | Path) -> bool:
     """
     p = Path(path)
     if not p.is_dir():
-        raise DesignFileError(f"recording not found: {p} (expected a bag folder written by 'nodlidar record')")
+        raise DesignFileError(
+            f"recording not found: {p} (expected a bag folder written by 'nodlidar record')")
     if (p / "metadata.yaml").exists():
         return False
     dbs = sorted(p.glob("*.db3"))
@@ -378,6 +379,23 @@ def design_from_header(header: dict):
     return design, perts, cal_id
 
 
+def read_recording(path: str | Path) -> BagContents:
+    """:func:`read_bag` for consumers that assemble a recording (replay, tracking,
+    calibration): the bag must hold at least one scan and the nod servo's samples.
+
+    Raises
+    ------
+    DesignFileError
+        The bag is missing or unreadable, or has no scans or no nod samples.
+    """
+    contents = read_bag(path)
+    if not contents.scans:
+        raise DesignFileError(f"{path}: the recording has no scans")
+    if "nod" not in contents.joints:
+        raise DesignFileError(f"{path}: the recording has no nod servo samples")
+    return contents
+
+
 def replay_bag(path: str | Path, **assemble_kw):
     """Read a recording and assemble it like the live session did.
 
@@ -386,11 +404,7 @@ def replay_bag(path: str | Path, **assemble_kw):
     """
     from .assembly import AssemblyModel, ScanBatch, assemble
 
-    contents = read_bag(path)
-    if not contents.scans:
-        raise DesignFileError(f"{path}: the recording has no scans")
-    if "nod" not in contents.joints:
-        raise DesignFileError(f"{path}: the recording has no nod servo samples")
+    contents = read_recording(path)
     design, perts, cal_id = design_from_header(contents.header)
     model = AssemblyModel.from_design(design, perts, cal_id)
     left, right = contents.lift_profiles()

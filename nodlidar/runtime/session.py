@@ -14,7 +14,7 @@ to the upper pitch limit. :class:`Capture` assembles itself through
 
 from __future__ import annotations
 
-import sys
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -41,10 +41,6 @@ __all__ = ["Session", "Capture", "DEFAULT_DESIGN", "JOINT_IDS"]
 
 DEFAULT_DESIGN = Path(__file__).resolve().parents[2] / "design" / "urg04lx-paper.toml"
 JOINT_IDS = {"nod": NOD_ID, "mirror_left": MIRROR_LEFT_ID, "mirror_right": MIRROR_RIGHT_ID}
-
-
-def _stderr(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 @dataclass
@@ -99,8 +95,9 @@ class Session:
         Simulated range noise.
     sim_perturbations : dict of str -> Perturbation, optional
         The simulated sensor's as-built mirror errors (ground truth a calibration should find).
-    log : callable
-        Progress/status messages (default: stderr).
+    log : callable, optional
+        Receives progress/status messages (one line each); default none (library code does
+        not print - the CLI passes a stderr writer).
     """
 
     def __init__(self, design: str | Path | None = None, *, port: str | None = None,
@@ -108,7 +105,7 @@ class Session:
                  transport: str = "pty", sim_rate: float = 1.0, scene: str | None = None,
                  noise: bool = True, seed: int = 0, lidar_timeout_s: float = 1.0,
                  sim_perturbations=None,
-                 log: Callable[[str], None] | None = _stderr):
+                 log: Callable[[str], None] | None = None):
         if (port is None) != (servo_port is None):
             raise ParameterError("--port/--servo-port", (port, servo_port),
                                  "both (hardware) or neither (the simulated sensor)")
@@ -152,9 +149,11 @@ class Session:
         self.model = AssemblyModel.from_design(self.design, perts, cal_id)
         try:
             if self.simulated:
+                from ..sim.scene import load_scene
                 from ..sim.sensor import SimulatedSensor
 
-                self.sim = SimulatedSensor(self.design, self.scene, perturbations=self.sim_perturbations,
+                scene = load_scene(self.scene)  # a TOML scene is read here, not in a constructor
+                self.sim = SimulatedSensor(self.design, scene, perturbations=self.sim_perturbations,
                                            transport=self.transport,
                                            rate=self.sim_rate, noise=self.noise, seed=self.seed)
                 self.sim.start()
@@ -271,7 +270,8 @@ class Session:
                 frac = min(1.0, max(0.0, (now - turns[1][0]) / prof.sweep_time_s))
                 if frac - last_report[0] >= 0.2 or (frac == 1.0 and last_report[0] < 1.0):
                     last_report[0] = frac
-                    self.log(f"sweep {100 * frac:3.0f}% ({len(scans)} scans)")
+                    # floor: "100%" only once the ramp is really complete
+                    self.log(f"sweep {math.floor(100 * frac):3d}% ({len(scans)} scans)")
             return nod.sweeps >= 1 and len(turns) >= 3 and now > turns[2][0] + period
 
         cap = self.capture(stop, lift=lift)

@@ -121,6 +121,7 @@ class DriverStats:
     timeouts: int = 0
     reconnects: int = 0
     handshakes: int = 0
+    bad_info_replies: int = 0
 
 
 @dataclass(frozen=True)
@@ -153,27 +154,41 @@ class _LinkLost(Exception):
 
 
 class _Unwrapper:
-    """Extends the 24-bit device timer; a backwards jump is taken as a device reset."""
+    """Extends the 24-bit device timer; a backwards jump is taken as a device reset.
+
+    Each reading may come with ``host_s``, the host time [s, in the device timer's time
+    scale] it was received. Across a reset (RS, a power cycle: the timer restarts at 0)
+    the device time cannot tell how long the device was away; the host times can, so the
+    unwrapped timeline goes on by the host time elapsed (1 ms if unknown). Its error is
+    the receive jitter; :meth:`UrgDriver.sync_clock` (repeated after a reconnect) takes
+    it out of the host stamps.
+    """
 
     def __init__(self) -> None:
         self.last_raw: int | None = None
+        self.last: int = 0
+        self.last_host_s: float | None = None
         self.base = 0
         self.resets = 0
 
-    def __call__(self, raw: int) -> int:
+    def __call__(self, raw: int, host_s: float | None = None) -> int:
         mod = scip.TIMESTAMP_MODULUS_MS
         if self.last_raw is None:
-            self.last_raw = raw
-            return raw
-        d = (raw - self.last_raw) % mod
-        if d >= mod // 2:  # went backwards: the timer was reset (RS, reboot)
-            self.resets += 1
-            self.base += self.last_raw + 1 - raw
-            unwrapped = self.base + raw
+            unwrapped = raw
         else:
-            unwrapped = self.base + self.last_raw + d
-            self.base = unwrapped - raw
-        self.last_raw = raw
+            d = (raw - self.last_raw) % mod
+            if d >= mod // 2:  # went backwards: the timer was reset (RS, reboot)
+                self.resets += 1
+                step = 1
+                if host_s is not None and self.last_host_s is not None:
+                    step = max(1, int(round(1000.0 * (host_s - self.last_host_s))))
+                unwrapped = self.last + step
+            else:
+                unwrapped = self.last + d
+        self.base = unwrapped - raw
+        self.last_raw, self.last = raw, unwrapped
+        if host_s is not None:
+            self.last_host_s = host_s
         return unwrapped
 
 
@@ -216,6 +231,8 @@ class UrgDriver:
         self._framer = scip.ScipFramer()
         self._inbox: collections.deque[tuple[scip.ScipReply, float]] = collections.deque()
         self._unwrap = _Unwrapper()
+        self._sync_source: Callable[[], float] | None = None
+        self._sync_samples = 10
         self._tag_no = 0
         self._seq = 0
 
@@ -282,7 +299,6 @@ class UrgDriver:
         if not self.reconnect:
             raise DeviceError(f"urg link lost ({why}); reconnect disabled")
         self.stats.reconnects += 1
-        self.clock_sync = None if self._unwrap.resets else self.clock_sync
         deadline = time.monotonic() + self.reconnect_timeout_s
         pause = 0.02
         last: Exception | None = None
@@ -291,6 +307,10 @@ class UrgDriver:
             try:
                 self._open_port()
                 self._handshake()
+                if self._sync_source is not None:
+                    # the device may have been power cycled (its timer restarted): measure
+                    # the clock offset again before any scan is stamped with it
+                    self._sync(self._sync_samples, self._sync_source)
                 return
             except (serial.SerialException, OSError, DeviceError, _LinkLost) as e:
                 last = e
@@ -395,8 +415,23 @@ class UrgDriver:
         return scip.parse_version(self._call(b"VV\n"))
 
     def parameters(self) -> scip.SensorParams:
-        """``PP``: model, DMIN/DMAX, ARES, AMIN/AMAX/AFRT, SCAN."""
-        return scip.parse_params(self._call(b"PP\n"))
+        """``PP``: model, DMIN/DMAX, ARES, AMIN/AMAX/AFRT, SCAN.
+
+        The step geometry every scan is decoded with comes from here, so a reply with a
+        line that verifies under no checksum rule (a garbled digit) is asked for again, up
+        to 3 times; only then is it accepted (with the codec's
+        :class:`~nodlidar.scip.ScipChecksumWarning`).
+        """
+        for attempt in range(3):
+            reply = self._call(b"PP\n")
+            if attempt == 2 or all(scip.info_line_verifies(ln) for ln in reply.body):
+                try:
+                    return scip.parse_params(reply)
+                except ProtocolError:
+                    if attempt == 2:
+                        raise
+            self.stats.bad_info_replies += 1
+        raise AssertionError("unreachable")
 
     def state(self) -> scip.SensorState:
         """``II``: laser, motor, mode, bit rate, time, status text."""
@@ -424,6 +459,7 @@ class UrgDriver:
         self._call(b"RS\n")
         self._unwrap = _Unwrapper()
         self.clock_sync = None
+        self._sync_source = None
 
     def _params(self) -> scip.SensorParams:
         if self.params is None:
@@ -441,26 +477,52 @@ class UrgDriver:
         Each ``TM1`` round trip gives ``offset = (t_send + t_recv) / 2 - t_device``; the
         sample with the smallest round-trip time is kept (its error is at most half
         that RTT plus the 1 ms timer resolution). Switches the laser off.
+
+        After a reconnect the driver repeats the measurement with the same ``samples`` and
+        ``time_source`` (a power-cycled device restarts its timer at zero).
         """
         if samples < 1:
             raise ParameterError("urg.sync_clock.samples", samples, ">= 1")
-        self._call(b"TM0\n", ("00", "02"))
+        for attempt in range(3):
+            try:
+                self._sync(samples, time_source)
+                break
+            except (_LinkLost, serial.SerialException, OSError) as e:
+                if attempt == 2:
+                    raise DeviceError(f"urg clock sync: {e}") from None
+                self._reconnect(str(e))
+        self._sync_source, self._sync_samples = time_source, int(samples)
+        return self.clock_sync
+
+    def _sync(self, samples: int, time_source: Callable[[], float]) -> None:
+        """TM0, ``samples`` x TM1, TM2 -> :attr:`clock_sync` (raises like ``_request``)."""
+        self._request_ok(b"TM0\n", ("00", "02"))
         best: tuple[float, float] | None = None
         try:
             for _ in range(samples):
                 t0 = time_source()
-                reply = self._call(b"TM1\n")
+                reply = self._request_ok(b"TM1\n", ("00",))
                 t1 = time_source()
                 if not reply.body:
                     raise ProtocolError("urg TM1 reply has no time line; allowed: 4 chars + sum")
-                dev_ms = self._unwrap(scip.decode_value(scip.verify_line(reply.body[0])))
+                dev_ms = self._unwrap(scip.decode_value(scip.verify_line(reply.body[0])),
+                                      0.5 * (t0 + t1))
                 rtt = t1 - t0
                 if best is None or rtt < best[0]:
                     best = (rtt, 0.5 * (t0 + t1) - dev_ms / 1000.0)
         finally:
-            self._call(b"TM2\n", ("00", "03"))
+            self._request_ok(b"TM2\n", ("00", "03"))
         self.clock_sync = ClockSync(offset_s=best[1], rtt_s=best[0], samples=samples)
-        return self.clock_sync
+
+    def _request_ok(self, line: bytes, allowed: tuple[str, ...]) -> scip.ScipReply:
+        """One request, status checked, no reconnect (the caller handles link loss)."""
+        return scip.check_status(self._request(line), allowed)
+
+    def _step0_host_time(self) -> float:
+        """Host time [s] of step 0 of a scan complete now, in the clock the device timer is
+        synced to (``time.monotonic`` if none): a scan arrives one revolution after its
+        step 0 (its timestamp)."""
+        return (self._sync_source or time.monotonic)() - 60.0 / self._params().scan_rpm
 
     # -- scans ------------------------------------------------------------------------
     def _request_for(self, command: str, start: int | None, end: int | None, cluster: int,
@@ -509,7 +571,7 @@ class UrgDriver:
                 self._call(b"BM\n", ("00", "02"))
                 reply = self._request(req.encode(), timeout=self.timeout + 0.3)
                 frame = scip.decode_scan(reply)
-                ts = self._unwrap(frame.timestamp_ms)
+                ts = self._unwrap(frame.timestamp_ms, self._step0_host_time())
                 return self._make_scan(frame, time.monotonic(), ts, 0, reply.raw)
             except ProtocolError:
                 self.stats.bad_scans += 1
@@ -580,7 +642,7 @@ class UrgDriver:
                         if fr is None:
                             continue
                         last_rx = t_rx
-                        ts = self._unwrap(fr.timestamp_ms)
+                        ts = self._unwrap(fr.timestamp_ms, self._step0_host_time())
                         if first_ms is None:
                             first_ms = ts
                         index = int(round((ts - first_ms) / period_ms))
