@@ -22,6 +22,16 @@ the planes come from noisy direct beams too, and for dalpha that term dominates.
 Degenerate data is refused (:class:`~nodlidar.errors.CalibrationError`): fewer than three
 wall orientations, too few reflected points on a mirror, an ill-conditioned ``J^T J``.
 
+Beam map: the first round takes each beam's mirror (or none) from the design. An as-built
+mirror turned by tens of mrad reaches into its neighbour's window or into the middle one
+(Table I: steps 271-278 and 485-498 of the design's direct window are folded by R2 and
+L2), and those beams, taken as direct, pull the wall plane off by centimetres once the
+range noise (1 % beyond 1 m) hides them from the plane's outlier test. So each later round
+re-traces which mirror every beam reaches through the mirrors fitted so far - exactly as
+the runtime assembly does with a calibration (:func:`nodlidar.verify.verify`, first hit on
+the finite patches) - refits the planes from the beams that are direct in both maps and each
+mirror from the beams that reach it, warm-started, until the map stops changing (``rounds``).
+
 The ``[calibration]`` table of a design file (all keys optional)::
 
     [calibration]
@@ -36,6 +46,7 @@ The ``[calibration]`` table of a design file (all keys optional)::
     plane_mad_k = 4.0           # plane-fit outlier threshold [robust sigmas]
     outlier_mad_k = 5.0         # reflected-point outlier threshold after the first fit
     min_nod_span_rad = 0.1      # nod range a mirror's beams must cover (dbeta observability)
+    rounds = 3                  # fit rounds (1 = the design's beam map only; see "Beam map")
 """
 
 from __future__ import annotations
@@ -54,7 +65,7 @@ from ..geometry import Perturbation
 from .walls import Plane, WallCapture, check_wall_orientations, fit_plane
 
 __all__ = ["CalibrationConfig", "calibration_config", "ResidualStats", "MirrorFit",
-           "CaptureFit", "CalibrationResult", "calibrate", "fit_planes", "MODELS",
+           "CaptureFit", "CalibrationResult", "calibrate", "fit_planes", "beam_map", "MODELS",
            "design_hash"]
 
 MODELS = ("exact", "paper")
@@ -76,12 +87,16 @@ class CalibrationConfig:
     plane_mad_k: float = 4.0
     outlier_mad_k: float = 5.0
     min_nod_span_rad: float = 0.1
+    rounds: int = 3
 
     def __post_init__(self) -> None:
         for f in fields(self):
             v = getattr(self, f.name)
             require(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
                     and v > 0, f"calibration.{f.name}", v, "a finite number > 0")
+        for name in ("min_points", "min_walls", "rounds"):
+            v = getattr(self, name)
+            require(float(v).is_integer(), f"calibration.{name}", v, "a whole number")
         require(self.min_walls >= 3, "calibration.min_walls", self.min_walls,
                 ">= 3 (fewer walls cannot separate the three parameters)")
 
@@ -213,13 +228,19 @@ class CaptureFit:
 
 @dataclass(frozen=True, eq=False)
 class CalibrationResult:
-    """Everything :func:`calibrate` found."""
+    """Everything :func:`calibrate` found.
+
+    ``rounds``: fit rounds run (module docstring, "Beam map"); ``beams_remapped``: beams
+    whose mirror (or none) in the last round's map differs from the design's.
+    """
 
     design_name: str
     design_hash: str
     model: str
     captures: tuple[CaptureFit, ...]
     mirrors: dict[str, MirrorFit] = field(default_factory=dict)
+    rounds: int = 1
+    beams_remapped: int = 0
 
     @property
     def perturbations(self) -> dict[str, Perturbation]:
@@ -228,6 +249,7 @@ class CalibrationResult:
 
     def to_dict(self) -> dict[str, Any]:
         return {"design": self.design_name, "design_hash": self.design_hash, "model": self.model,
+                "rounds": self.rounds, "beams_remapped": self.beams_remapped,
                 "walls": [{"name": c.name, "normal": c.plane.normal.tolist(),
                            "offset_m": c.plane.offset_m, "plane_rms_m": c.plane.rms_m,
                            "n_direct": int(c.plane.inliers.sum())} for c in self.captures],
@@ -237,32 +259,55 @@ class CalibrationResult:
 # ---------------------------------------------------------------------------------------
 
 
-def fit_planes(design, captures: list[WallCapture], config: CalibrationConfig) -> list[CaptureFit]:
-    """Robust PCA plane of each capture's direct beams (independent of the mirrors)."""
+def fit_planes(design, captures: list[WallCapture], config: CalibrationConfig,
+               direct: np.ndarray | None = None) -> list[CaptureFit]:
+    """Robust PCA plane of each capture's direct beams (independent of the mirrors).
+
+    ``direct`` : (n_steps,) bool over the lidar's valid steps, the beams taken as direct
+    (default: the design's beam map; with the mirrors lifted every beam is direct).
+    """
+    lidar = design.lidar
     out = []
     for k, cap in enumerate(captures):
         name = cap.name or f"capture {k}"
         bm = design.beam_model(mirrors_deployed=cap.mirrors_deployed)
-        direct = (bm.mirror_index(cap.steps) == -1) & np.isfinite(cap.ranges_m)
-        pts = bm.points(cap.steps[direct], cap.ranges_m[direct], cap.nod_rad[direct])
+        if direct is None or not cap.mirrors_deployed:
+            is_direct = bm.mirror_index(cap.steps) == -1
+        else:
+            is_direct = np.asarray(direct)[cap.steps - lidar.step_min]
+        sel = is_direct & np.isfinite(cap.ranges_m)
+        pts = bm.points(cap.steps[sel], cap.ranges_m[sel], cap.nod_rad[sel])
         plane = fit_plane(pts, mad_k=config.plane_mad_k, name=name)
         out.append(CaptureFit(name=name, plane=plane, direct_points=pts[plane.inliers]))
     return out
 
 
+def beam_map(design, perturbations: dict[str, Perturbation] | None) -> np.ndarray:
+    """(n_steps,) int over the valid steps: the mirror each beam reaches with the mirrors
+    perturbed (``-1`` none; ``-2`` reflected but blocked on its way out), by the same trace
+    as the runtime assembly's (:func:`nodlidar.verify.verify`, first hit on the patches)."""
+    from ..verify import verify
+
+    v = verify(design, perturbations or None)
+    return np.where((v.hit >= 0) & (v.blocker != -1), -2, v.hit)
+
+
 class _MirrorProblem:
     """The residual function of one mirror over all captures (vectorised over points)."""
 
-    def __init__(self, design, name: str, steps, ranges, nod, normals, offsets, model: str):
+    def __init__(self, design, name: str, steps, ranges, nod, normals, offsets, model: str,
+                 mirror_steps: np.ndarray | None = None):
         self.design = design
         self.sol = design.mirror(name)
         self.steps, self.ranges, self.nod = steps, ranges, nod
         self.normals, self.offsets = normals, offsets
         self.model = model
         lidar = design.lidar
-        # a one-mirror beam map: this mirror's steps -> index 0, everything else direct
+        # a one-mirror beam map: the steps reaching this mirror (default: the design's) ->
+        # index 0, everything else direct
+        self.mirror_steps = self.sol.steps if mirror_steps is None else np.asarray(mirror_steps)
         self.mos = np.full(lidar.n_steps, -1, dtype=int)
-        self.mos[self.sol.steps - lidar.step_min] = 0
+        self.mos[self.mirror_steps - lidar.step_min] = 0
         self.pivot = np.asarray(design.spec.nod.pivot_m, dtype=float)
         if model == "paper":
             self._paper_setup()
@@ -270,7 +315,8 @@ class _MirrorProblem:
     def subset(self, mask: np.ndarray) -> _MirrorProblem:
         """The same problem on the points selected by ``mask``."""
         return _MirrorProblem(self.design, self.sol.name, self.steps[mask], self.ranges[mask],
-                              self.nod[mask], self.normals[mask], self.offsets[mask], self.model)
+                              self.nod[mask], self.normals[mask], self.offsets[mask], self.model,
+                              self.mirror_steps)
 
     def points(self, x: np.ndarray) -> np.ndarray:
         """Sensor-frame points (n, 3) of this mirror's beams under perturbation ``x``."""
@@ -402,39 +448,63 @@ def calibrate(design, captures: list[WallCapture], *, model: str = "exact",
     if not captures:
         raise CalibrationError("no wall captures given; calibration needs at least "
                                f"{config.min_walls} captures at different orientations")
-    fits = fit_planes(design, captures, config)
-    check_wall_orientations([c.plane for c in fits], [c.name for c in fits],
-                            min_walls=int(config.min_walls),
-                            min_angle_rad=np.radians(config.min_wall_angle_deg))
+    lidar = design.lidar
     names = mirrors or [m.name for m in design.mirrors]
+    index = {m.name: i for i, m in enumerate(design.mirrors)}
+    design_map = np.asarray(design.mirror_of_step)
+    hit = design_map
+    start = {name: (x0 or {}).get(name, Perturbation()) for name in names}
     out: dict[str, MirrorFit] = {}
-    for name in names:
-        sol = design.mirror(name)
-        parts = []
-        for k, (cap, cf) in enumerate(zip(captures, fits)):
-            if not cap.mirrors_deployed:
-                continue
-            sel = np.isin(cap.steps, sol.steps) & np.isfinite(cap.ranges_m)
-            parts.append((k, cap.steps[sel], cap.ranges_m[sel], cap.nod_rad[sel], cf.plane))
-        n_pts = sum(p[1].size for p in parts)
-        if n_pts < config.min_points:
-            raise CalibrationError(f"mirror {name}: only {n_pts} reflected points on the walls; "
-                                   f"need at least {int(config.min_points)} (are the mirrors deployed "
-                                   "and is the wall in front of the sensor?)")
-        steps, ranges, nod = (np.concatenate([p[i] for p in parts]) for i in (1, 2, 3))
-        span = float(np.ptp(nod))
-        if span < config.min_nod_span_rad:
-            # without nodding a tilted beam meets a vertical wall at a range change of
-            # order dbeta^2: the sign of dbeta is lost and the fit finds a mirror image
-            raise CalibrationError(
-                f"mirror {name}: its reflected beams cover a nod range of only {span:.3g} rad; "
-                f"the tilt dbeta is observable only with the head nodding (need >= "
-                f"{config.min_nod_span_rad:g} rad)")
-        kidx = np.concatenate([np.full(p[1].size, p[0]) for p in parts])
-        normals = np.concatenate([np.broadcast_to(p[4].normal, (p[1].size, 3)) for p in parts])
-        offsets = np.concatenate([np.full(p[1].size, p[4].offset_m) for p in parts])
-        prob = _MirrorProblem(design, name, steps, ranges, nod, normals, offsets, model)
-        start = (x0 or {}).get(name, Perturbation()).as_array()
-        out[name] = _fit_mirror(prob, config, start, kidx, [c.plane for c in fits])
+    for rnd in range(int(config.rounds)):
+        # beams direct in the design's map and in the current one give the planes
+        fits = fit_planes(design, captures, config, direct=(design_map == -1) & (hit == -1))
+        check_wall_orientations([c.plane for c in fits], [c.name for c in fits],
+                                min_walls=int(config.min_walls),
+                                min_angle_rad=np.radians(config.min_wall_angle_deg))
+        out = {name: _fit_one(design, name, captures, fits, config, model, start[name],
+                              np.flatnonzero(hit == index[name]) + lidar.step_min)
+               for name in names}
+        if rnd + 1 == int(config.rounds):
+            break
+        fitted = {name: m.perturbation for name, m in out.items()}
+        # mirrors not fitted here keep their starting pose
+        new_hit = beam_map(design, {**{m.name: (x0 or {}).get(m.name, Perturbation())
+                                       for m in design.mirrors}, **fitted})
+        if np.array_equal(new_hit, hit):
+            break
+        hit = new_hit
+        start = fitted
     return CalibrationResult(design_name=design.spec.name, design_hash=design_hash(design.spec),
-                             model=model, captures=tuple(fits), mirrors=out)
+                             model=model, captures=tuple(fits), mirrors=out, rounds=rnd + 1,
+                             beams_remapped=int(np.count_nonzero(hit != design_map)))
+
+
+def _fit_one(design, name: str, captures: list[WallCapture], fits: list[CaptureFit],
+             config: CalibrationConfig, model: str, start: Perturbation,
+             mirror_steps: np.ndarray) -> MirrorFit:
+    """Fit one mirror from the beams of ``mirror_steps`` over all deployed captures."""
+    parts = []
+    for k, (cap, cf) in enumerate(zip(captures, fits)):
+        if not cap.mirrors_deployed:
+            continue
+        sel = np.isin(cap.steps, mirror_steps) & np.isfinite(cap.ranges_m)
+        parts.append((k, cap.steps[sel], cap.ranges_m[sel], cap.nod_rad[sel], cf.plane))
+    n_pts = sum(p[1].size for p in parts)
+    if n_pts < config.min_points:
+        raise CalibrationError(f"mirror {name}: only {n_pts} reflected points on the walls; "
+                               f"need at least {int(config.min_points)} (are the mirrors deployed "
+                               "and is the wall in front of the sensor?)")
+    steps, ranges, nod = (np.concatenate([p[i] for p in parts]) for i in (1, 2, 3))
+    span = float(np.ptp(nod))
+    if span < config.min_nod_span_rad:
+        # without nodding a tilted beam meets a vertical wall at a range change of
+        # order dbeta^2: the sign of dbeta is lost and the fit finds a mirror image
+        raise CalibrationError(
+            f"mirror {name}: its reflected beams cover a nod range of only {span:.3g} rad; "
+            f"the tilt dbeta is observable only with the head nodding (need >= "
+            f"{config.min_nod_span_rad:g} rad)")
+    kidx = np.concatenate([np.full(p[1].size, p[0]) for p in parts])
+    normals = np.concatenate([np.broadcast_to(p[4].normal, (p[1].size, 3)) for p in parts])
+    offsets = np.concatenate([np.full(p[1].size, p[4].offset_m) for p in parts])
+    prob = _MirrorProblem(design, name, steps, ranges, nod, normals, offsets, model, mirror_steps)
+    return _fit_mirror(prob, config, start.as_array(), kidx, [c.plane for c in fits])

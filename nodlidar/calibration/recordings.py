@@ -1,10 +1,13 @@
-"""Wall captures from runtime data: scans + nod servo samples -> :class:`WallCapture`.
+"""Wall captures from runtime data: scans + servo samples -> :class:`WallCapture`.
 
 The runtime (:mod:`nodlidar.runtime.assembly`) stores scans as a ``ScanBatch`` (steps,
-ranges, scan index, each scan's step-0 time) and the nod servo as timestamped angle
-samples. Calibration needs each beam's nod angle, obtained exactly as the assembly does:
-the beam's time from :meth:`LidarModel.beam_time_s` and the nod samples interpolated there
-(``AngleSamples.at``). Beams outside the nod samples' time span are dropped.
+ranges, scan index, each scan's step-0 time) and the servos as timestamped angle samples.
+Calibration needs each beam's nod angle and whether its mirror was deployed; both come
+from the assembly itself (:func:`~nodlidar.runtime.assembly.assemble`, the one place the
+beam time, the nod interpolation and the mirror state are decided), so a wall capture
+holds exactly the beams a point cloud of the same data would: no error codes, none outside
+the nod samples' time span, none whose mirror was moving. Beams of a lifted side are
+dropped too: the fit maps the reflected windows' steps through the deployed mirrors.
 """
 
 from __future__ import annotations
@@ -14,12 +17,13 @@ import numpy as np
 from ..errors import CalibrationError
 from .walls import WallCapture
 
-__all__ = ["capture_from_scans", "capture_from_recording"]
+__all__ = ["capture_from_scans", "capture_from_capture", "capture_from_recording"]
 
 
-def capture_from_scans(design, scans, nod, *, mirrors_deployed: bool = True,
+def capture_from_scans(design, scans, nod, *, mirror_left=None, mirror_right=None,
+                       lift_left=None, lift_right=None, mirrors_deployed: bool = True,
                        name: str = "") -> WallCapture:
-    """A wall capture from a runtime ``ScanBatch`` and nod samples.
+    """A wall capture from a runtime ``ScanBatch`` and servo samples.
 
     Parameters
     ----------
@@ -28,23 +32,49 @@ def capture_from_scans(design, scans, nod, *, mirrors_deployed: bool = True,
         All beams of the capture's scans with each scan's step-0 time [s].
     nod : AngleSamples, Samples or (t (k,), angle (k,)) pair
         Head pitch [rad] of the nod servo at times [s] (the scans' clock).
+    mirror_left, mirror_right : samples, "deployed", "lifted" or None
+        Lift-servo samples of each side (None: deployed throughout), as for ``assemble``.
+    lift_left, lift_right : MirrorLiftProfile, optional
+        The sides' deployed/lifted servo angles (default ``MirrorLiftProfile()``).
     mirrors_deployed : bool
-        The mirrors' state during the capture (calibration needs them deployed).
+        False: a capture with both mirrors lifted (every beam direct; not usable by the
+        mirror fit, which refuses it).
     name : str
         Label for reports.
     """
-    from ..runtime.assembly import AngleSamples
+    from ..beams import DIRECT
+    from ..runtime.assembly import AngleSamples, AssemblyModel, assemble
 
-    steps = np.asarray(scans.steps)
-    t = design.lidar.beam_time_s(np.asarray(scans.scan_time_s, float)[np.asarray(scans.scan)], steps)
-    nod_rad = AngleSamples.of(nod).at(t)
-    keep = np.isfinite(nod_rad)
+    if not mirrors_deployed:
+        mirror_left = mirror_right = "lifted"
+    model = AssemblyModel.from_design(design)
+    cloud = assemble(model, scans, nod, mirror_left=mirror_left, mirror_right=mirror_right,
+                     lift_left=lift_left, lift_right=lift_right)
+    # the assembly turns a lifted side's beams into direct ones (mirror -1 on a reflected
+    # window's step): keep them only for an all-lifted capture
+    designed = model.deployed.mirror_index(cloud.step)
+    keep = (cloud.mirror != DIRECT) | (designed == DIRECT) if mirrors_deployed else \
+        np.ones(len(cloud), bool)
     if not keep.any():
-        raise CalibrationError(f"{name or 'capture'}: no beam falls inside the nod samples' time "
-                               "span; are the scan and servo clocks the same?")
-    return WallCapture(steps=steps[keep].astype(int),
-                       ranges_m=np.asarray(scans.ranges_m, float)[keep],
-                       nod_rad=nod_rad[keep], mirrors_deployed=mirrors_deployed, name=name)
+        raise CalibrationError(f"{name or 'capture'}: no usable beam (none inside the nod samples' "
+                               "time span with its mirror deployed); are the scan and servo "
+                               "clocks the same?")
+    nod_rad = AngleSamples.of(nod).at(cloud.t[keep])  # the assembly's own interpolation
+    return WallCapture(steps=cloud.step[keep].astype(int), ranges_m=cloud.range_m[keep],
+                       nod_rad=nod_rad, mirrors_deployed=mirrors_deployed, name=name)
+
+
+def capture_from_capture(design, capture, *, name: str = "") -> WallCapture:
+    """A wall capture from a live :class:`~nodlidar.runtime.session.Capture` (a sweep)."""
+    from ..runtime.assembly import ScanBatch
+
+    if not capture.scans:
+        raise CalibrationError(f"{name or 'capture'}: the sweep returned no scans")
+    return capture_from_scans(design, ScanBatch.from_scans(capture.scans), capture.joints["nod"],
+                              mirror_left=capture.joints.get("mirror_left"),
+                              mirror_right=capture.joints.get("mirror_right"),
+                              lift_left=capture.lift_left, lift_right=capture.lift_right,
+                              name=name)
 
 
 def capture_from_recording(path, design=None, *, name: str = ""):
@@ -69,16 +99,11 @@ def capture_from_recording(path, design=None, *, name: str = ""):
     """
     from pathlib import Path
 
-    from ..errors import DesignFileError
-    from ..runtime.assembly import DEPLOYED, AngleSamples, AssemblyModel, ScanBatch, mirror_state
-    from ..runtime.bag import design_from_header, read_bag
+    from ..runtime.assembly import ScanBatch
+    from ..runtime.bag import design_from_header, read_recording
     from .fit import design_hash
 
-    contents = read_bag(path)
-    if not contents.scans:
-        raise DesignFileError(f"{path}: the recording has no scans")
-    if "nod" not in contents.joints:
-        raise DesignFileError(f"{path}: the recording has no nod servo samples")
+    contents = read_recording(path)
     recorded, _, _ = design_from_header(contents.header)
     if design is None:
         design = recorded
@@ -86,23 +111,9 @@ def capture_from_recording(path, design=None, *, name: str = ""):
         raise CalibrationError(f"{path}: recorded with design '{recorded.spec.name}' "
                                f"({design_hash(recorded.spec)}), not '{design.spec.name}' "
                                f"({design_hash(design.spec)})")
-    scans = ScanBatch.from_scans(contents.scans)
-    cap = capture_from_scans(design, scans, contents.joints["nod"], name=name or Path(path).name)
-    # the mirror state of each kept beam's side at its time, as the assembly decides it
-    model = AssemblyModel.from_design(design)
-    t = design.lidar.beam_time_s(np.asarray(scans.scan_time_s)[np.asarray(scans.scan)],
-                                 np.asarray(scans.steps))
-    t = t[np.isfinite(AngleSamples.of(contents.joints["nod"]).at(t))]
-    mirror = model.deployed.mirror_index(cap.steps)
-    ok = mirror < 0
-    for side, (joint, profile) in enumerate(zip(("mirror_left", "mirror_right"),
-                                                contents.lift_profiles())):
-        on_side = (mirror >= 0) & (model.mirror_side[np.maximum(mirror, 0)] == side)
-        samples = contents.joints.get(joint)
-        if samples is None:  # no lift servo recorded: deployed throughout
-            ok |= on_side
-        elif on_side.any():
-            state = mirror_state(AngleSamples.of(samples).at(t[on_side]), profile)
-            ok[np.flatnonzero(on_side)[state == DEPLOYED]] = True
-    return design, WallCapture(cap.steps[ok], cap.ranges_m[ok], cap.nod_rad[ok],
-                               mirrors_deployed=True, name=cap.name)
+    left, right = contents.lift_profiles()
+    return design, capture_from_scans(
+        design, ScanBatch.from_scans(contents.scans), contents.joints["nod"],
+        mirror_left=contents.joints.get("mirror_left"),
+        mirror_right=contents.joints.get("mirror_right"), lift_left=left, lift_right=right,
+        name=name or Path(path).name)

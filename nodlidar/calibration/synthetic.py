@@ -91,16 +91,29 @@ def synthetic_capture(design, wall: WallPose, perturbations: dict[str, Perturbat
     Ranges: the closed-form hit of each outgoing ray (exact, perturbed BeamModel) with the
     infinite wall plane, plus Gaussian noise of ``lidar.range_sigma_m`` (if ``noise``),
     rounded to ``quantum_m`` (the URG reports whole millimetres; 0 disables). Beams that
-    never reach the wall, or beyond the lidar's range limits, are NaN.
+    never reach the wall, or beyond the lidar's range limits, are NaN. Which mirror each beam
+    reaches is traced through the perturbed finite patches (:func:`~.fit.beam_map`, as the
+    simulator and the runtime assembly do): a turned mirror folds beams of its neighbour's
+    window; beams blocked on their way out are NaN.
     """
+    from ..beams import BeamModel
+    from .fit import beam_map
+
     rng = rng if rng is not None else np.random.default_rng(0)
     steps, nod = sweep_nod(design, n_scans)
-    bm = design.beam_model(perturbations, mirrors_deployed=mirrors_deployed)
+    if mirrors_deployed:
+        hit = beam_map(design, perturbations)
+        bm = BeamModel.build(design.lidar, design.patches(perturbations), np.maximum(hit, -1),
+                             design.spec.nod.pivot_m)
+        blocked = hit[steps - design.lidar.step_min] == -2
+    else:
+        bm = design.beam_model(perturbations, mirrors_deployed=False)
+        blocked = np.zeros(steps.shape, bool)
     start, d, off = bm.rays(steps, nod)
     n, p0 = wall.normal, wall.point
     with np.errstate(divide="ignore", invalid="ignore"):
         t = ((p0 - start) @ n) / (d @ n)
-    r = np.where(t > 0, off + t, np.nan)
+    r = np.where((t > 0) & ~blocked, off + t, np.nan)
     if noise:
         r = r + rng.standard_normal(r.shape) * design.lidar.range_sigma_m(np.nan_to_num(r))
     if quantum_m:

@@ -6,12 +6,18 @@ beams on those planes (eq. 10). Needs >= 3 captures at distinct orientations.
 
   nodlidar calibrate --walls A B C [--design F] [--out calib.toml] [--json] [--plot fig.png]
   nodlidar calibrate --sim [--perturb table1] [--distance 1.0] [--yaw-deg -25 0 25]
+  nodlidar calibrate --live [--port URL --servo-port URL] [--orientations 3] [--yes]
 
 ``--walls`` takes wall captures: ``.npz`` files (steps, ranges_m, nod_rad; see
 ``nodlidar.calibration.walls.save_capture``) or recordings made by ``nodlidar record`` (bag
 directories; the sensor nodding in front of the wall, mirrors deployed). ``--sim`` captures the walls with
 the simulated sensor (embree ray tracer, finite mirrors, URG noise) built with the given
 perturbations, and reports the recovered values against them.
+
+``--live`` guides a capture on the device: for each orientation it asks you (on stderr) to
+face the sensor to the wall at a new angle and press Enter (``--yes``: don't wait), then
+runs one nod sweep with the mirrors deployed. Without ``--port``/``--servo-port`` the
+simulated sensor stands in, facing a wall at each ``--distance``/``--yaw-deg`` in turn.
 """
 
 from __future__ import annotations
@@ -19,6 +25,8 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+
+import numpy as np
 
 DEFAULT_DESIGN = "design/urg04lx-paper.toml"
 
@@ -31,6 +39,9 @@ def register(sub) -> None:
                      help="wall captures (.npz) or recordings (bag directories), >= 3")
     src.add_argument("--sim", action="store_true",
                      help="capture three walls with the simulated sensor")
+    src.add_argument("--live", action="store_true",
+                     help="guided capture: one nod sweep per wall orientation, on the device "
+                          "(--port/--servo-port) or the simulated sensor")
     p.add_argument("--design", default=DEFAULT_DESIGN, help=f"design file (default {DEFAULT_DESIGN})")
     p.add_argument("--out", metavar="TOML", help="write the calibration file here")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -40,12 +51,21 @@ def register(sub) -> None:
     g = p.add_argument_group("simulation (--sim)")
     g.add_argument("--perturb", choices=("table1", "none"), default="table1",
                    help="as-built mirror errors of the simulated sensor (default: paper Table I)")
-    g.add_argument("--distance", type=float, default=1.0, metavar="M",
-                   help="wall distance [m] (default 1.0)")
+    g.add_argument("--distance", type=float, nargs="+", default=[1.0], metavar="M",
+                   help="wall distance [m]: one for all walls or one per --yaw-deg (default 1.0)")
     g.add_argument("--yaw-deg", type=float, nargs="+", default=[-25.0, 0.0, 25.0],
                    help="wall orientations [deg] (default -25 0 25)")
     g.add_argument("--seed", type=int, default=0, help="noise seed")
     g.add_argument("--no-noise", action="store_true", help="exact ranges (mm rounding only)")
+    lv = p.add_argument_group("live capture (--live)")
+    lv.add_argument("--port", metavar="URL", default=None,
+                    help="lidar port (default: the simulated sensor; --sim options apply)")
+    lv.add_argument("--servo-port", metavar="URL", default=None, help="Dynamixel bus port")
+    lv.add_argument("--orientations", type=int, default=3, metavar="N",
+                    help="wall orientations to capture on the device (default 3)")
+    lv.add_argument("--yes", action="store_true", help="don't wait for Enter between captures")
+    lv.add_argument("--sim-rate", type=float, default=1.0, metavar="X",
+                    help="simulated sensor: simulated seconds per wall second")
     p.set_defaults(func=run)
 
 
@@ -62,9 +82,78 @@ def _read_walls(paths: list[str], design) -> list:
     return caps
 
 
-def run(args) -> int:
-    import numpy as np
+def _sim_walls(args) -> list:
+    from ..calibration.synthetic import WallPose
+    from ..errors import ParameterError
 
+    d = list(args.distance)
+    if len(d) == 1:
+        d = d * len(args.yaw_deg)
+    if len(d) != len(args.yaw_deg):
+        raise ParameterError("--distance", args.distance,
+                             f"one distance or one per --yaw-deg ({len(args.yaw_deg)})")
+    return [WallPose(di, np.radians(y)) for di, y in zip(d, args.yaw_deg)]
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _ask(prompt: str, wait: bool) -> None:
+    """Print a guided-capture prompt on stderr and wait for Enter (EOF cancels)."""
+    from ..errors import CalibrationError
+
+    print(prompt, file=sys.stderr, flush=True)
+    if wait and sys.stdin.readline() == "":
+        raise CalibrationError("calibration cancelled: no answer on stdin (use --yes to capture "
+                               "without waiting)")
+
+
+def _live_captures(args, design, truth) -> tuple[list, str]:
+    """Guided capture: one nod sweep per wall orientation (device, or the simulated sensor)."""
+    from ..calibration.recordings import capture_from_capture
+    from ..errors import ParameterError, require
+    from ..runtime.session import Session
+
+    require(args.sim_rate > 0, "--sim-rate", args.sim_rate, "> 0")
+    if (args.port is None) != (args.servo_port is None):
+        raise ParameterError("--port/--servo-port", (args.port, args.servo_port),
+                             "both (hardware) or neither (the simulated sensor)")
+    caps = []
+
+    def sweep(session, k: int, n: int) -> None:
+        cap = session.sweep()
+        caps.append(capture_from_capture(design, cap, name=f"orientation {k + 1}"))
+        print(f"  orientation {k + 1}/{n}: {len(cap.scans)} scans, {len(caps[-1])} beams",
+              file=sys.stderr, flush=True)
+
+    if args.port is not None:  # the device: one session, the user turns the sensor
+        require(args.orientations >= 3, "--orientations", args.orientations, ">= 3")
+        n = args.orientations
+        with Session(args.design, port=args.port, servo_port=args.servo_port, log=_log) as s:
+            for k in range(n):
+                _ask(f"[{k + 1}/{n}] face the sensor to a flat wall"
+                     + (" at a clearly different angle (>= 10 deg) than before" if k else "")
+                     + ", the wall filling the middle and both mirror windows; press Enter to "
+                       "nod once", not args.yes)
+                sweep(s, k, n)
+        return caps, f"live: {args.port} + {args.servo_port}, {n} orientations"
+    from ..sim.scene import wall_scene
+
+    walls = _sim_walls(args)
+    n = len(walls)
+    for k, w in enumerate(walls):
+        _ask(f"[{k + 1}/{n}] simulated sensor: facing a wall {w.distance_m:g} m away, turned "
+             f"{np.degrees(w.yaw_rad):+.0f} deg; press Enter to nod once", not args.yes)
+        with Session(args.design, scene=wall_scene(w.distance_m, w.yaw_rad),
+                     sim_rate=args.sim_rate, noise=not args.no_noise, seed=args.seed * 100 + k,
+                     sim_perturbations=truth or None, log=_log) as s:
+            sweep(s, k, n)
+    return caps, (f"live simulated sensor, perturb={args.perturb}, walls "
+                  + ", ".join(f"{w.distance_m:g} m/{np.degrees(w.yaw_rad):+.0f} deg" for w in walls))
+
+
+def run(args) -> int:
     from ..calibration.calfile import calibration_from_result, write_calibration
     from ..calibration.fit import calibrate
     from ..solver import solve
@@ -72,16 +161,20 @@ def run(args) -> int:
 
     design = solve(load_design(args.design))
     truth = None
-    if args.sim:
-        from ..calibration.synthetic import WallPose, simulated_captures
+    if args.sim or (args.live and args.port is None):
         from ..paper import TABLE_I_PERTURBATIONS
 
         truth = dict(TABLE_I_PERTURBATIONS) if args.perturb == "table1" else {}
-        walls = [WallPose(args.distance, np.radians(y)) for y in args.yaw_deg]
+    if args.sim:
+        from ..calibration.synthetic import simulated_captures
+
+        walls = _sim_walls(args)
         captures = simulated_captures(design, truth, walls, seed=args.seed,
                                       noise=not args.no_noise)
         source = (f"simulated sensor, perturb={args.perturb}, {len(walls)} walls at "
-                  f"{args.distance} m, yaw {args.yaw_deg} deg, seed {args.seed}")
+                  f"{[w.distance_m for w in walls]} m, yaw {args.yaw_deg} deg, seed {args.seed}")
+    elif args.live:
+        captures, source = _live_captures(args, design, truth)
     else:
         captures = _read_walls(args.walls, design)
         source = "walls: " + ", ".join(args.walls)
