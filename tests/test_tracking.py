@@ -149,6 +149,8 @@ def test_segmentation_and_motion_on_synthetic_scene(design):
     # opposite-time evidence
     assert tp / (tp + fp) >= 0.95
     assert tp / (tp + fn) >= 0.8
+    # Rényi: the online tracker with the voxel entropy misses the heading bound on this scene
+    # (measured 86.3-92.6 deg over seeds 4-6; see nodlidar.tracking.study for the batch study)
     trk = Tracker(TrackerConfig())
     for s in segs:
         trk.update(s)
@@ -200,7 +202,7 @@ def test_tracker_birth_confirmation_and_death():
 
 
 def test_stonesoup_round_trip():
-    pytest.importorskip("stonesoup")
+    # stonesoup is a test dependency (pyproject): imported, not skipped when missing
     from nodlidar.tracking.stonesoup import from_stonesoup, to_stonesoup
     from nodlidar.tracking.tracker import TrackState
 
@@ -254,6 +256,19 @@ def test_cli_track_recording_needs_bag(capsys):
 def test_cli_study_writes_outputs(tmp_path, capsys):
     out = tmp_path / "s"
     assert main(["study", "mirrors", "--out", str(out), "--scans", "12", "--entropy", "renyi"]) == 0
-    for f in ("study_mirrors.md", "study_mirrors.csv", "accumulated_clouds.png", "convergence.png"):
+    for f in ("study_mirrors.md", "study_mirrors.csv", "accumulated_clouds.png", "convergence.png",
+              "segmentation_mirrors.png", "segmentation_no_mirrors.png"):
         assert (out / f).stat().st_size > 0
     assert "| mirrors | renyi |" in capsys.readouterr().out
+    assert main(["study", "mirrors", "--out", str(out), "--robot-velocity", "5", "0"]) == 2
+    assert "--robot-velocity" in capsys.readouterr().err
+
+
+def test_bad_grid_parameters_are_refused():
+    from nodlidar.errors import ParameterError
+
+    P, T = _ring_cloud(np.array([0.0, 0.13]), n_scans=3)
+    with pytest.raises(ParameterError, match="voxel_grid"):
+        refine_motion(P, T, MotionEstimate(0.13, 1.56), entropy="voxel", voxel_grid=(2,))
+    with pytest.raises(ParameterError, match="warm_voxel_grid"):
+        TrackerConfig(warm_voxel_grid=())

@@ -1,11 +1,19 @@
-"""``nodlidar track [RECORDING | --sim]``: detect and track moving objects, scan by scan.
+"""``nodlidar track [RECORDING | live | --sim]``: detect and track moving objects, scan by scan.
 
-With ``--sim`` (the default when no recording is given) the scans come from the built-in
-simulated sensor (direct API, no emulators), scene ``paper-tracking`` unless ``--scene``
-says otherwise. Each scan is segmented online (voxel inconsistency with the evidence so
-far), clustered, associated to tracks; every track update is printed (``--json``: one JSON
-object per line). A recording (``nodlidar record``) is read with
-:func:`nodlidar.tracking.recording.scans_from_recording` (its own design and calibration).
+Three sources of scans, all through the same segmentation and tracker:
+
+* ``RECORDING``: a recording made by ``nodlidar record`` (its own design and calibration),
+  through the runtime assembly (:func:`nodlidar.tracking.recording.scans_from_recording`);
+* ``live``: the device (``--port``/``--servo-port``) or, without ports, the simulated sensor
+  over its emulated serial links (scene ``paper-tracking`` unless ``--scene``), through a
+  runtime session: the head nods, every scan is assembled once the servo samples cover it
+  (one scan of latency) and tracked as it arrives, for ``--scans`` scans;
+* ``--sim`` (the default when nothing is given): the simulator's direct API, no emulators.
+
+Each scan is segmented online (voxel inconsistency with the evidence so far), clustered,
+associated to tracks; every track update is printed (``--json``: one JSON object per line
+and update). Recordings and live scans are in the sensor base frame raised by
+``--sensor-height`` (the floor at z = 0 for the ground removal).
 """
 
 from __future__ import annotations
@@ -16,48 +24,44 @@ import sys
 
 
 def register(sub) -> None:
-    p = sub.add_parser("track", help="detect and track moving objects (recording or simulator)",
+    from ..tracking.recording import DEFAULT_SENSOR_HEIGHT_M
+
+    p = sub.add_parser("track", help="detect and track moving objects (recording, live or simulator)",
                        description=__doc__)
-    p.add_argument("recording", nargs="?", help="recording made by nodlidar record (a bag folder)")
-    p.add_argument("--sim", action="store_true", help="use the built-in simulated sensor")
+    p.add_argument("recording", nargs="?",
+                   help="recording made by nodlidar record (a bag folder), or 'live'")
+    p.add_argument("--sim", action="store_true", help="use the simulator's direct API")
     p.add_argument("--design", default="design/urg04lx-paper.toml", help="design TOML")
-    p.add_argument("--scene", default="paper-tracking", help="simulator scene (name or TOML)")
-    p.add_argument("--scans", type=int, default=60, help="number of simulated scans (default 60)")
-    p.add_argument("--lifted", action="store_true", help="simulate with the mirrors lifted")
+    p.add_argument("--scene", default="paper-tracking",
+                   help="simulator scene (name or TOML) for --sim and a simulated live sensor")
+    p.add_argument("--scans", type=int, default=60, help="scans to simulate / track live (default 60)")
+    p.add_argument("--lifted", action="store_true", help="mirrors lifted (--sim and live)")
     p.add_argument("--entropy", choices=("renyi", "voxel"), default="renyi")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true", help="one JSON line per track update")
+    p.add_argument("--sensor-height", type=float, default=DEFAULT_SENSOR_HEIGHT_M, metavar="M",
+                   help="recording/live: sensor base height above the floor [m] "
+                        f"(default {DEFAULT_SENSOR_HEIGHT_M}, the paper's Pioneer mount)")
+    lv = p.add_argument_group("live")
+    lv.add_argument("--port", metavar="URL", default=None,
+                    help="lidar port (default: the simulated sensor)")
+    lv.add_argument("--servo-port", metavar="URL", default=None, help="Dynamixel bus port")
+    lv.add_argument("--calibration", metavar="TOML", default=None,
+                    help="calibration file of this design (mirror perturbations)")
+    lv.add_argument("--sim-rate", type=float, default=1.0, metavar="X",
+                    help="simulated sensor: simulated seconds per wall second")
+    lv.add_argument("--perturb", choices=("none", "table1"), default="none",
+                    help="simulated sensor: as-built mirror errors (default none)")
     p.set_defaults(func=run)
 
 
-def _scans(args, design):
-    from ..errors import require
+class _Printer:
+    def __init__(self, as_json: bool) -> None:
+        self.as_json = as_json
 
-    if args.recording and not args.sim:
-        from ..tracking.recording import scans_from_recording
-
-        _, scans = scans_from_recording(args.recording)
-        print(f"recording {args.recording}: {len(scans)} scans", file=sys.stderr)
-        return scans
-    require(args.scans >= 1, "--scans", args.scans, ">= 1")
-    from ..tracking.simdata import simulate_scans
-
-    return simulate_scans(design, args.scans, mirrors_deployed=not args.lifted, scene=args.scene,
-                          seed=args.seed)
-
-
-def run(args) -> int:
-    from ..solver import solve
-    from ..spec import load_design
-    from ..tracking.segment import OnlineSegmenter
-    from ..tracking.tracker import Tracker, TrackerConfig
-
-    design = solve(load_design(args.design))
-    seg = OnlineSegmenter(range_sigma=design.lidar.range_sigma_m)
-    trk = Tracker(TrackerConfig(entropy=args.entropy))
-    for scan in _scans(args, design):
-        for st in trk.update(seg.update(scan)):
-            if args.json:
+    def __call__(self, states) -> None:
+        for st in states:
+            if self.as_json:
                 print(json.dumps(st.to_dict()), flush=True)
             elif st.confirmed or not st.alive:
                 v = "   -  " if math.isnan(st.v_m_s) else f"{st.v_m_s:6.3f}"
@@ -67,5 +71,74 @@ def run(args) -> int:
                       f"{'alive' if st.alive else 'ended'}  x {st.x_m:6.3f} y {st.y_m:6.3f} m  "
                       f"v {v} m/s (sd {sd:.3f})  heading {h} deg  "
                       f"[{st.n_scans} scans, {st.n_points} pts]", flush=True)
+
+
+def _live(args, step) -> None:
+    """Track from a runtime session (device or simulated sensor) as scans arrive."""
+    from ..errors import require
+    from ..runtime.session import Session
+    from ..tracking.recording import LiveScans
+    from ._runtime_args import sim_perturbations
+
+    require(args.sim_rate > 0, "--sim-rate", args.sim_rate, "> 0")
+    with Session(args.design, port=args.port, servo_port=args.servo_port,
+                 calibration=args.calibration, scene=args.scene, sim_rate=args.sim_rate,
+                 seed=args.seed, sim_perturbations=sim_perturbations(args.perturb),
+                 log=lambda msg: print(msg, file=sys.stderr, flush=True)) as s:
+        live = LiveScans(s.model, (s.lift_left, s.lift_right),
+                         sensor_height_m=args.sensor_height)
+
+        def on_scan(scan, samplers) -> None:
+            for sp in live.on_scan(scan, samplers):
+                step(sp)
+
+        cap = s.capture(lambda scans, _nod: len(scans) >= args.scans, lift=args.lifted,
+                        on_scan=on_scan)
+        for sp in live.finish(cap):
+            step(sp)
+    print(f"live: tracked {live.n_done} of {live.n_in} scans (calibration "
+          f"{s.model.calibration_id})", file=sys.stderr)
+
+
+def run(args) -> int:
+    from ..errors import require
+    from ..solver import solve
+    from ..spec import load_design
+    from ..tracking.segment import OnlineSegmenter
+    from ..tracking.tracker import Tracker, TrackerConfig
+
+    require(args.scans >= 1, "--scans", args.scans, ">= 1")
+    require(math.isfinite(args.sensor_height), "--sensor-height", args.sensor_height,
+            "a finite height [m]")
+    if args.port is not None or args.servo_port is not None:
+        require(args.recording == "live", "recording", args.recording,
+                "'live' with --port/--servo-port")
+    seg = trk = None
+    show = _Printer(args.json)
+
+    def step(scan_points) -> None:
+        show(trk.update(seg.update(scan_points)))
+
+    if args.recording and not args.sim and args.recording != "live":
+        from ..tracking.recording import scans_from_recording
+
+        design, scans = scans_from_recording(args.recording, sensor_height_m=args.sensor_height)
+        print(f"recording {args.recording}: {len(scans)} scans (calibration "
+              f"{scans[0].calibration_id})", file=sys.stderr)
+    else:
+        design = solve(load_design(args.design))
+        scans = None
+    seg = OnlineSegmenter(range_sigma=design.lidar.range_sigma_m)
+    trk = Tracker(TrackerConfig(entropy=args.entropy))
+    if args.recording == "live" and not args.sim:
+        _live(args, step)
+        return 0
+    if scans is None:
+        from ..tracking.simdata import simulate_scans
+
+        scans = simulate_scans(design, args.scans, mirrors_deployed=not args.lifted,
+                               scene=args.scene, seed=args.seed)
+    for scan in scans:
+        step(scan)
     sys.stdout.flush()
     return 0

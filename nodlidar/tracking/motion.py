@@ -246,7 +246,7 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
                   entropy: str = "renyi", t_ref_s: float | None = None, sigma_m: float = 0.02,
                   voxel_m: float = 0.03, search_m_s: float = 0.08, n_scans: int = 0,
                   plane: bool = True, max_points: int = 800,
-                  voxel_offsets: int = 1) -> MotionEstimate:
+                  voxel_offsets: int = 1, voxel_grid: tuple[int, ...] = (17, 9, 9)) -> MotionEstimate:
     """Eq. 13: the motion whose compensated accumulation has the least entropy.
 
     Parameters
@@ -274,14 +274,21 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         Voxel: average eq. 12 over this many grids shifted along the diagonal by
         ``voxel_m / voxel_offsets`` (1 = the paper's single grid). Averaging shifted grids
         makes the cost less sensitive to where the grid happens to cut the cloud.
+    voxel_grid : tuple of int
+        Voxel: points per axis of each level of the grid search (level ``i`` spans
+        ``+-search_m_s / 8**i`` around the previous level's minimum).
 
     Returns
     -------
-    MotionEstimate with ``cov`` from the inverse Hessian of the Rényi cost (scaled by the
-    residual entropy, a Laplace approximation) for ``"renyi"``; for ``"voxel"`` from the spread
-    of the tied grid minima (at least the fine grid's resolution).
+    MotionEstimate with ``cov`` = the inverse Hessian of the Rényi cost at the minimum
+    (central differences, 2 mm/s steps; unscaled, so a curvature measure rather than a
+    calibrated covariance; None if the Hessian is not positive definite) for ``"renyi"``;
+    for ``"voxel"`` from the spread of the tied grid minima (at least the fine grid's
+    resolution).
     """
     require(entropy in ENTROPIES, "entropy", entropy, " or ".join(ENTROPIES))
+    require(len(voxel_grid) >= 1 and all(int(n) == n and n >= 3 for n in voxel_grid),
+            "voxel_grid", voxel_grid, "one or more integers >= 3 (points per axis)")
     p = np.asarray(points, float)
     t = np.asarray(t_s, float)
     require(len(p) >= 3, "points", len(p), ">= 3")
@@ -317,7 +324,7 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
 
         centre = w0
         cov = None
-        for half, n in ((search_m_s, 17), (search_m_s / 8, 9), (search_m_s / 64, 9)):
+        for half, n in zip(search_m_s / 8.0 ** np.arange(len(voxel_grid)), voxel_grid):
             g = np.linspace(-half, half, n)
             W = centre + np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
             vals = np.array([f(wv) for wv in W])

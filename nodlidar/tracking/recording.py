@@ -1,14 +1,20 @@
-"""Scans for the tracking pipeline from a recording made by ``nodlidar record``.
+"""Scans for the tracking pipeline from runtime data: a recording, or a live session.
 
-The bag holds the raw SCIP frames, the nod and mirror servo samples and the design (and
-calibration) it was recorded with (:mod:`nodlidar.runtime.bag`). Each scan becomes a
-:class:`~nodlidar.tracking.simdata.ScanPoints` the same way the simulator's scans do: beam time
-from the scan stamp (:meth:`LidarModel.beam_time_s`), nod interpolated from the servo samples,
-points and free-space rays from the runtime BeamModel (deployed or lifted per mirror side at
-the beam's time). Unlike :func:`nodlidar.runtime.assembly.assemble`, beams with no return are
-kept (NaN range): the segmentation uses them as free space.
+The runtime keeps the raw scans, the nod and mirror servo samples and the design (and
+calibration) they belong to (:mod:`nodlidar.runtime.bag` for recordings,
+:class:`~nodlidar.runtime.session.Capture` live). Each scan becomes a
+:class:`~nodlidar.tracking.simdata.ScanPoints` through the runtime assembly itself
+(:func:`~nodlidar.runtime.assembly.assemble`: the one place that decides each beam's time,
+its nod angle, its mirror's state, and drops beams outside the nod samples, with the
+mirror moving, or blocked); only the outgoing rays are added here, from the same
+BeamModel the assembly used for the beam (deployed or lifted). Unlike a point cloud,
+beams with no return are kept (NaN range): the segmentation carves them as free space.
+They pass through the assembly with a placeholder range and get their NaN back after.
 
-The sensor base is taken as the world frame (a recording holds no robot poses).
+Frame: the sensor base, raised by ``sensor_height_m`` - the tracking's world frame has the
+floor at z = 0 (the segmentation removes a band above it as ground), and neither a
+recording nor a live session knows where the floor is. The default 0.4 m is the paper's
+mount on a Pioneer P3-DX (and the simulated scenes' sensor height).
 """
 
 from __future__ import annotations
@@ -17,62 +23,152 @@ from pathlib import Path
 
 import numpy as np
 
-from .simdata import ScanPoints, project_scan
+from .simdata import ScanPoints
 
-__all__ = ["scans_from_recording"]
+__all__ = ["DEFAULT_SENSOR_HEIGHT_M", "scans_from_capture", "scans_from_recording",
+           "LiveScans"]
+
+DEFAULT_SENSOR_HEIGHT_M = 0.4
+_PLACEHOLDER_M = 1.0  # any valid range: the assembly keeps the beam, its NaN is restored
 
 
-def scans_from_recording(path: str | Path):
-    """Read a recording and return ``(design, [ScanPoints, ...])``.
+def scans_from_capture(model, scans, joints, lift_profiles=(None, None), *,
+                       sensor_height_m: float = DEFAULT_SENSOR_HEIGHT_M,
+                       first_index: int = 0) -> list[ScanPoints]:
+    """Runtime scans + servo samples -> one :class:`ScanPoints` per scan with any beam kept.
 
-    Beams whose nod angle is unknown (outside the servo samples) or whose mirror was moving
-    are dropped, as in the assembly.
+    Parameters
+    ----------
+    model : nodlidar.runtime.assembly.AssemblyModel
+        The design's BeamModels, calibration applied.
+    scans : list of driver Scans (``steps``, ``ranges_m``, ``stamp_s``)
+    joints : dict
+        ``"nod"`` (required), ``"mirror_left"``, ``"mirror_right"``: servo samples
+        (anything :class:`~nodlidar.runtime.assembly.AngleSamples` takes).
+    lift_profiles : (MirrorLiftProfile or None, MirrorLiftProfile or None)
+    sensor_height_m : float
+        Height of the sensor base above the floor [m] (module docstring).
+    first_index : int
+        ``ScanPoints.scan`` of the first scan (scan indices count on across calls).
+    """
+    from ..beams import DIRECT
+    from ..runtime.assembly import AngleSamples, ScanBatch, assemble
+
+    if not scans:
+        return []
+    batch = ScanBatch.from_scans(scans)
+    r = np.asarray(batch.ranges_m, dtype=float)
+    no_return = ~(np.isfinite(r) & (r > 0))
+    lidar = model.lidar
+    grid = np.zeros((len(scans), lidar.n_steps), bool)
+    grid[np.asarray(batch.scan), np.asarray(batch.steps) - lidar.step_min] = no_return
+    held = ScanBatch(batch.steps, np.where(no_return, _PLACEHOLDER_M, r), batch.scan,
+                     batch.scan_time_s)
+    left, right = lift_profiles
+    cloud = assemble(model, held, joints["nod"], mirror_left=joints.get("mirror_left"),
+                     mirror_right=joints.get("mirror_right"), lift_left=left, lift_right=right)
+    if not len(cloud):
+        return []
+    step, scan_i, t = cloud.step.astype(int), cloud.scan.astype(int), cloud.t
+    missing = grid[scan_i, step - lidar.step_min]
+    rng = np.where(missing, np.nan, cloud.range_m)
+    nod = AngleSamples.of(joints["nod"]).at(t)  # the assembly's interpolation, as it kept them
+    # the assembly maps a lifted side's beams to direct: those took the lifted BeamModel
+    lifted = (cloud.mirror == DIRECT) & (model.deployed.mirror_index(step) != DIRECT)
+    start, direc, off = np.empty((len(t), 3)), np.empty((len(t), 3)), np.empty(len(t))
+    for bm, sel in ((model.deployed, ~lifted), (model.lifted, lifted)):
+        if sel.any():
+            start[sel], direc[sel], off[sel] = bm.rays(step[sel], nod[sel])
+    lift = np.array([0.0, 0.0, float(sensor_height_m)])
+    pts = np.where(missing[:, None], np.nan, cloud.xyz + lift)
+    start = start + lift
+    out = []
+    bounds = np.flatnonzero(np.diff(scan_i)) + 1  # assemble keeps the batch's scan order
+    for idx in np.split(np.arange(len(t)), bounds):
+        k = int(scan_i[idx[0]])
+        order = idx[np.argsort(step[idx], kind="stable")]
+        out.append(ScanPoints(scan=first_index + k, steps=step[order], t_s=t[order],
+                              mirror=cloud.mirror[order].astype(int), range_m=rng[order],
+                              points=pts[order], ray_start=start[order], ray_dir=direc[order],
+                              ray_offset=off[order], calibration_id=cloud.calibration_id))
+    return out
+
+
+def scans_from_recording(path: str | Path, *,
+                         sensor_height_m: float = DEFAULT_SENSOR_HEIGHT_M):
+    """Read a recording and return ``(design, [ScanPoints, ...])`` (see the module docstring).
+
+    Beams whose nod angle is unknown (outside the servo samples), whose mirror was moving,
+    or that the calibrated mirrors block are dropped, as in the assembly.
     """
     from ..errors import DesignFileError
-    from ..runtime.assembly import DEPLOYED, LIFTED, AngleSamples, AssemblyModel, mirror_state
-    from ..runtime.bag import design_from_header, read_bag
+    from ..runtime.assembly import AssemblyModel
+    from ..runtime.bag import design_from_header, read_recording
 
-    contents = read_bag(path)
-    if not contents.scans:
-        raise DesignFileError(f"{path}: the recording has no scans")
-    if "nod" not in contents.joints:
-        raise DesignFileError(f"{path}: the recording has no nod servo samples")
+    contents = read_recording(path)
     design, perts, cal_id = design_from_header(contents.header)
     model = AssemblyModel.from_design(design, perts, cal_id)
-    lidar = design.lidar
-    nod = AngleSamples.of(contents.joints["nod"])
-    profiles = contents.lift_profiles()
-    sides = [contents.joints.get(j) for j in ("mirror_left", "mirror_right")]
-
-    out: list[ScanPoints] = []
-    for k, scan in enumerate(contents.scans):
-        steps = np.asarray(scan.steps)
-        t = lidar.beam_time_s(scan.stamp_s, steps)
-        nod_rad = nod.at(t)
-        mirror = model.deployed.mirror_index(steps)
-        state = np.full(steps.shape, DEPLOYED, dtype=np.int8)
-        for side, (samples, profile) in enumerate(zip(sides, profiles)):
-            on_side = (mirror >= 0) & (model.mirror_side[np.maximum(mirror, 0)] == side)
-            if samples is not None and on_side.any():
-                state[on_side] = mirror_state(AngleSamples.of(samples).at(t[on_side]), profile)
-        keep = np.isfinite(nod_rad) & ((state == DEPLOYED) | (state == LIFTED))
-        if not keep.any():
-            continue
-        steps, t, nod_rad, state = steps[keep], t[keep], nod_rad[keep], state[keep]
-        r = np.asarray(scan.ranges_m, dtype=float)[keep]
-        lifted = state == LIFTED
-        parts = [project_scan(bm, k, steps[sel], r[sel], t[sel], nod_rad[sel])
-                 for bm, sel in ((model.deployed, ~lifted), (model.lifted, lifted)) if sel.any()]
-        out.append(parts[0] if len(parts) == 1 else _concat(parts))
+    out = scans_from_capture(model, contents.scans, contents.joints, contents.lift_profiles(),
+                             sensor_height_m=sensor_height_m)
     if not out:
         raise DesignFileError(f"{path}: no scan has nod samples covering it")
     return design, out
 
 
-def _concat(parts: list[ScanPoints]) -> ScanPoints:
-    """One ScanPoints from parts of the same scan, in step order."""
-    cat = {f: np.concatenate([getattr(p, f) for p in parts])
-           for f in ("steps", "t_s", "mirror", "range_m", "points", "ray_start", "ray_dir",
-                     "ray_offset")}
-    order = np.argsort(cat["steps"], kind="stable")
-    return ScanPoints(scan=parts[0].scan, **{f: v[order] for f, v in cat.items()})
+class LiveScans:
+    """Scans of a live :meth:`Session.capture <nodlidar.runtime.session.Session.capture>` as
+    they arrive, each handed on once the servo samples cover it.
+
+    Use :meth:`on_scan` as the capture's ``on_scan`` callback; it returns the
+    :class:`ScanPoints` now ready (a scan waits until a nod sample later than its last beam
+    has been read, typically one scan period), in order. :meth:`finish` returns the rest
+    from the capture's final samples.
+
+    Parameters
+    ----------
+    model : AssemblyModel
+        The session's (``Session.model``).
+    lift_profiles : (MirrorLiftProfile, MirrorLiftProfile)
+    sensor_height_m : float
+    """
+
+    def __init__(self, model, lift_profiles, *,
+                 sensor_height_m: float = DEFAULT_SENSOR_HEIGHT_M) -> None:
+        self.model = model
+        self.lift_profiles = tuple(lift_profiles)
+        self.sensor_height_m = float(sensor_height_m)
+        self.pending: list = []
+        self.n_in = 0  # scans received
+        self.n_done = 0  # scans handed on (or dropped) so far
+
+    def _ready(self, joints, final: bool) -> list[ScanPoints]:
+        lidar = self.model.lidar
+        # every servo's samples must reach past a scan's last beam (nod and mirror state)
+        t_cover = min((float(np.max(j[0])) if len(j[0]) else -np.inf) for j in joints.values())
+        n = 0
+        for s in self.pending:
+            last_beam = float(lidar.beam_time_s(s.stamp_s, np.asarray([np.max(s.steps)]))[0])
+            if not final and last_beam >= t_cover:
+                break
+            n += 1
+        batch, self.pending = self.pending[:n], self.pending[n:]
+        first = self.n_done
+        self.n_done += n
+        return scans_from_capture(self.model, batch, joints, self.lift_profiles,
+                                  sensor_height_m=self.sensor_height_m, first_index=first)
+
+    def on_scan(self, scan, samplers) -> list[ScanPoints]:
+        """Add a scan; return the scans the samples read so far cover."""
+        self.pending.append(scan)
+        self.n_in += 1
+        joints = {}
+        for name, smp in samplers.items():
+            s = smp.samples()
+            joints[name] = (np.asarray(s.host_time_s), np.asarray(s.angle_rad))
+        if len(joints.get("nod", ((),))[0]) < 2:
+            return []
+        return self._ready(joints, final=False)
+
+    def finish(self, capture) -> list[ScanPoints]:
+        """The scans still waiting, from the capture's final samples."""
+        return self._ready(capture.joints, final=True) if self.pending else []

@@ -9,8 +9,9 @@ blind interval (the head sweeps past an object's height band, ~8 scans on the pa
 
 Motion: after two scans, the coarse centroid line (:func:`coarse_motion`), then the entropy
 refinement (:func:`refine_motion`) over the track's last ``window_scans`` scans, warm-started
-from the previous refinement (search half-width ``warm_search_m_s``) once there is one; the
-Rényi sum uses at most ``max_points`` points. Position is
+from the previous refinement (search half-width ``warm_search_m_s``, and for the voxel
+entropy a coarser grid, ``warm_voxel_grid``) once there is one; the Rényi sum uses at most
+``max_points`` points. Position is
 the centroid of the latest scan's points, and the covariance of (x, y, vx, vy) comes from the
 residuals of the centroid line fit (ordinary least squares, isotropic), with the velocity
 block replaced by the refinement's curvature covariance when that is available and tighter.
@@ -42,12 +43,21 @@ class TrackerConfig:
     position_sigma_m: float = 0.03
     max_points: int = 300
     warm_search_m_s: float = 0.03
+    # voxel entropy, warm start: grid-search levels (points per axis) over +-warm_search_m_s;
+    # 9, 9, 9 instead of the cold search's 17, 9, 9: a third less update time; final
+    # estimates within 0.002 m/s and 1.1 deg of the finer grid's on the paper scene and the
+    # synthetic one (measured, 3 seeds each; two levels only, (9, 9), halves the time but
+    # moved one synthetic seed's heading by 5 deg)
+    warm_voxel_grid: tuple[int, ...] = (9, 9, 9)
 
     def __post_init__(self) -> None:
         require(self.confirm_scans >= 2, "confirm_scans", self.confirm_scans, ">= 2")
         require(self.max_missed >= 0, "max_missed", self.max_missed, ">= 0")
         require(self.entropy in ("voxel", "renyi"), "entropy", self.entropy, "voxel or renyi")
         require(self.gate_m > 0, "gate_m", self.gate_m, "> 0 m")
+        require(len(self.warm_voxel_grid) >= 1 and all(int(n) == n and n >= 3
+                                                       for n in self.warm_voxel_grid),
+                "warm_voxel_grid", self.warm_voxel_grid, "one or more integers >= 3")
 
 
 @dataclass(frozen=True)
@@ -154,7 +164,8 @@ class Tracker:
         tr.motion = refine_motion(P, Tp, tr.motion if warm else tr.coarse, entropy=cfg.entropy,
                                   sigma_m=cfg.sigma_m, voxel_m=cfg.voxel_m, n_scans=k,
                                   max_points=cfg.max_points,
-                                  search_m_s=cfg.warm_search_m_s if warm else 0.08)
+                                  search_m_s=cfg.warm_search_m_s if warm else 0.08,
+                                  **({"voxel_grid": cfg.warm_voxel_grid} if warm else {}))
         # OLS covariance of the centroid line (isotropic residual variance)
         tc = T - T.mean()
         res = C - (C.mean(axis=0) + np.outer(tc, tr.coarse.velocity))
