@@ -29,7 +29,7 @@ bench: $(STAMP)
 	MPLBACKEND=Agg $(PY) benchmarks/run.py
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check nodlidar tests benchmarks
+	$(VENV)/bin/ruff check nodlidar tests benchmarks notebooks
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -59,7 +59,8 @@ def main() -> None:
     n = steps.size
     print(f"bare polar->xyz:        {n / t_bare / 1e6:8.2f} M beams/s")
     print(f"BeamModel.points:       {n / t_bm / 1e6:8.2f} M beams/s  (cost ratio {t_bm / t_bare:.2f} x bare)")
-    print(f"BeamModel.points + nod: {n / t_bm_nod / 1e6:8.2f} M beams/s  (cost ratio {t_bm_nod / t_bare:.2f} x bare)")
+    print(f"BeamModel.points + nod: {n / t_bm_nod / 1e6:8.2f} M beams/s  "
+          f"(cost ratio {t_bm_nod / t_bare:.2f} x bare)")
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ __all__ = [
     "unit",
     "reflect",
     "matrix_from_axis_angle",
+    "rot_x",
     "rot_y",
     "rot_z",
     "MirrorPatch",
@@ -83,6 +84,14 @@ def rot_z(angle: np.ndarray | float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     o, i = np.zeros_like(a), np.ones_like(a)
     return np.stack([np.stack([c, -s, o], -1), np.stack([s, c, o], -1), np.stack([o, o, i], -1)], -2)
+
+
+def rot_x(angle: np.ndarray | float) -> np.ndarray:
+    """Rotation(s) about +x (roll; positive tips +y up). Scalar -> (3,3); (n,) -> (n,3,3)."""
+    a = np.asarray(angle, dtype=float)
+    c, s = np.cos(a), np.sin(a)
+    o, i = np.zeros_like(a), np.ones_like(a)
+    return np.stack([np.stack([i, o, o], -1), np.stack([o, c, -s], -1), np.stack([o, s, c], -1)], -2)
 
 
 def rot_y(angle: np.ndarray | float) -> np.ndarray:

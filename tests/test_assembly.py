@@ -12,9 +12,10 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from nodlidar.errors import ParameterError
+from nodlidar.geometry import rot_y
 from nodlidar.paper import TABLE_I_PERTURBATIONS
 from nodlidar.runtime.actuators import MirrorLiftProfile, NodProfile
-from nodlidar.runtime.assembly import AssemblyModel, PoseTrack, ScanBatch, assemble, mirror_state, rot_y
+from nodlidar.runtime.assembly import AssemblyModel, PoseTrack, ScanBatch, assemble, mirror_state
 from nodlidar.sim.raycast import SceneSimulator
 from nodlidar.sim.scene import SensorPose, builtin_scene, wall_scene
 from nodlidar.solver import solve
@@ -175,7 +176,8 @@ def test_robot_frame_is_robot2sensor_applied():
     sim = SceneSimulator(DESIGN, wall_scene(1.5))
     batch, _ = simulate(sim, 2)
     model = AssemblyModel.from_design(DESIGN)
-    T = rot_y(0.2)
+    T = np.eye(4)
+    T[:3, :3] = rot_y(0.2)
     T[:3, 3] = (0.1, -0.2, 0.5)
     s = assemble(model, batch, 0.05)
     r = assemble(model, batch, 0.05, frame="robot", robot2sensor=T)

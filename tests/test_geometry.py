@@ -8,6 +8,7 @@ from nodlidar.geometry import (
     Perturbation,
     matrix_from_axis_angle,
     reflect,
+    rot_x,
     rot_y,
     rot_z,
     unit,
@@ -31,11 +32,14 @@ def test_rotations_agree_with_axis_angle():
     for a in (-1.0, 0.3, 2.0):
         assert_allclose(rot_z(a), matrix_from_axis_angle([0, 0, 1], a), atol=1e-15)
         assert_allclose(rot_y(a), matrix_from_axis_angle([0, 1, 0], a), atol=1e-15)
-    # REP 103: positive pitch tips +x down
+        assert_allclose(rot_x(a), matrix_from_axis_angle([1, 0, 0], a), atol=1e-15)
+    # REP 103: positive pitch tips +x down; positive roll lifts +y
     assert rot_y(0.1)[2, 0] < 0
+    assert rot_x(0.1)[2, 1] > 0
     # vectorised form equals the scalar form
     a = rng.uniform(-3, 3, 5)
-    assert_allclose(rot_y(a), np.stack([rot_y(x) for x in a]))
+    for rot in (rot_x, rot_y, rot_z):
+        assert_allclose(rot(a), np.stack([rot(x) for x in a]))
 
 
 def _patch(theta=0.3, d=0.06, hinge_z=-0.025):

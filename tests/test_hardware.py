@@ -16,7 +16,8 @@ from nodlidar.runtime.urg import UrgDriver
 
 PORT = os.environ.get("NODLIDAR_PORT")
 pytestmark = [pytest.mark.hardware,
-              pytest.mark.skipif(not PORT, reason="set NODLIDAR_PORT to a URG-04LX (device or socket:// URL)")]
+              pytest.mark.skipif(not PORT,
+                                 reason="set NODLIDAR_PORT to a URG-04LX (device or socket:// URL)")]
 
 
 def test_device_reports_its_parameters():

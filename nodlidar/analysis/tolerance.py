@@ -66,6 +66,7 @@ from ..geometry import (
     ray_circle_exit,
     reflect,
     reflect_rays,
+    rot_x,
     rot_y,
     rot_z,
     wrap_angle,
@@ -314,16 +315,9 @@ class LidarMount:
                                np.array([self.roll]))[0]
 
 
-def _rot_x(angle: np.ndarray) -> np.ndarray:
-    """Rotations about +x, ``(n,) -> (n, 3, 3)``: ``rot_y`` conjugated by the quarter turn
-    about z that takes +y to +x (so the core's rotations are the only ones used)."""
-    q = rot_z(-np.pi / 2)
-    return q @ rot_y(angle) @ q.T
-
-
 def _mount_rotation(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
     """``rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)`` for arrays ``(n,)`` -> ``(n, 3, 3)``."""
-    return rot_z(yaw) @ rot_y(pitch) @ _rot_x(roll)
+    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
 
 
 def mounted_patches(design: Design, perturbations: dict[str, Perturbation] | None = None,

@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import NodlidarError, ParameterError
+from ..geometry import matrix_from_axis_angle, unit
 from .params import MountParams
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -82,14 +83,6 @@ def mm_from_m(x: Any) -> np.ndarray:
     return np.asarray(x, dtype=float) * MM_PER_M
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return np.asarray(v, float) / np.linalg.norm(v)
-
-
-def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
-    a = _unit(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
 # ---------------------------------------------------------------------------------------
@@ -172,7 +165,7 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
             continue
         ends = [_face_ends(m.patch) for m in ms]
         normals = [np.asarray(m.patch.normal_, float) for m in ms]
-        dirs = [_unit(i - o) for o, i in ends]
+        dirs = [unit(i - o) for o, i in ends]
         chained = all(np.linalg.norm(ends[j][1] - ends[j + 1][0]) < 1e-6
                       for j in range(len(ms) - 1))
         # concave joints only (the back offsets of a convex joint would overlap)
@@ -203,7 +196,7 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
                                        o - (t + w) * n])[:, :2])
             polys = tuple(polys)
         # hinge axis: chord direction, through the most lidar-ward face point
-        c = _unit(np.r_[(ends[-1][1] - ends[0][0])[:2], 0.0])
+        c = unit(np.r_[(ends[-1][1] - ends[0][0])[:2], 0.0])
         wdir = np.cross(c, EZ)
         if wdir @ (-normals[0]) < 0:
             wdir = -wdir
@@ -237,7 +230,7 @@ def lift_transform(axis: HingeAxis, state: str) -> tuple[np.ndarray, np.ndarray]
         raise ParameterError("state", state, " or ".join(STATES))
     if state == "deployed":
         return np.eye(3), np.zeros(3)
-    R = _rot(np.asarray(axis.direction), axis.lift_rad)
+    R = matrix_from_axis_angle(np.asarray(axis.direction), axis.lift_rad)
     p = np.asarray(axis.point_mm)
     return R, p - R @ p
 

@@ -22,7 +22,6 @@ Times are in whatever clock the scan times and the actuator samples share (the d
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -489,10 +488,3 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
                       scan_i.astype(np.int32), r, frame, model.design_name, model.design_hash,
                       model.calibration_id, model.deployed.mirror_names, asdict(stats))
 
-
-def rot_y(angle: float) -> np.ndarray:
-    """4x4 rotation about +y by ``angle`` [rad] (helper for tests and examples)."""
-    c, s = math.cos(angle), math.sin(angle)
-    T = np.eye(4)
-    T[0, 0], T[0, 2], T[2, 0], T[2, 2] = c, s, -s, c
-    return T
