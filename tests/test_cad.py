@@ -209,6 +209,77 @@ def test_printed_carriers_locate_the_glass_where_the_solver_put_it(paper_export,
         assert seat and max(f.Area() for f in seat) > 100.0, side   # a real ledge, not an edge
 
 
+def _slide(carrier, glass, u, probe):
+    """How far ``glass`` can slide along the unit vector ``u`` before it meets ``carrier``.
+
+    Moves the glass solid by ``probe`` mm along ``u`` and intersects it with the carrier:
+    the overlap's nearest point along ``u`` is where the carrier first stands in the
+    glass's way (the glass's leading end face is perpendicular to ``u``, the overlap is a
+    polyhedron, so that point is one of its vertices). Returns the free travel [mm], or
+    inf if the carrier is not in the way within ``probe`` (the pocket is open that way).
+    """
+    common = carrier.intersect(glass.translate(cq.Vector(*map(float, u * probe))))
+    pieces = [s for s in common.Solids() if s.Volume() > VOL_TOL_MM3]
+    if not pieces:
+        return np.inf
+    lead = max(np.array(v.toTuple()) @ u for v in glass.Vertices())
+    first = min(np.array(v.toTuple()) @ u for s in pieces for v in s.Vertices())
+    return first - lead
+
+
+def test_printed_carriers_close_each_pocket_at_both_ends(paper_export, paper_design):
+    """The printed carrier locates every glass along its length: sliding the (re-imported)
+    glass along ``along`` either way, the printable carrier STEP stops it, and the two free
+    travels add up to the pocket clearance, i.e. the pocket is the solved patch length +
+    ``pocket_clearance_mm`` long (0.01 mm). At a free end of a side's chain the stop is a
+    face square to the mirror, ``end_stop_height_mm`` tall from the seat and
+    ``end_stop_depth_mm`` deep from the datum (at a chained joint it is the back plate's
+    joint face, behind the wedge between the two glass ends). Fails on a pocket open at
+    an end (the carrier before the end stops: L1/R1 slid out of the outer end)."""
+    manifest, _ = paper_export
+    spec = paper_design.spec
+    cad = manifest.parameters["cad"]
+    clr = cad["pocket_clearance_mm"]
+    probe = clr + cad["end_stop_length_mm"] / 2          # into a stop, never through it
+    t_mm = spec.mirror.glass_thickness_m * 1000
+    z_lo = -spec.mirror.glass_height_m * 500
+    names = [p["name"] for p in manifest.parts]
+    assembly = _imported_solids(manifest.file("assembly_deployed.step"))
+    for side in ("L", "R"):
+        carrier = _imported_solids(manifest.file(f"parts/carrier_{side}.step"))[0]
+        mirrors = [m for m in paper_design.mirrors if m.side == side]
+        ends = {m.name: m.patch.point(np.array([m.patch.s_min, m.patch.s_max])) * 1000
+                for m in mirrors}
+        for m in mirrors:
+            p = m.patch
+            glass = assembly[names.index(f"glass_{m.name}")]
+            np.testing.assert_allclose(glass.Volume(), p.length * p.height * 1e6 * t_mm,
+                                       rtol=1e-9)
+            travel = []
+            for k, u in enumerate((-p.along_, p.along_)):
+                d = _slide(carrier, glass, u, probe)
+                assert np.isfinite(d), f"{m.name}: pocket open towards {'-+'[k]}along"
+                assert d >= -POS_TOL_MM, (m.name, k, d)
+                travel.append(d)
+                end = ends[m.name][k]
+                joint = any(np.linalg.norm(end - e) < 1e-3 for o in mirrors if o is not m
+                            for e in ends[o.name])
+                if joint:
+                    continue
+                # a free end: a stop face square to the mirror, facing the glass end
+                face = _planar_faces(carrier, -u, end + d * u)
+                assert len(face) == 1, (m.name, k, len(face))
+                v = np.array([x.toTuple() for x in face[0].Vertices()])
+                depth = (p.origin_ * 1000 - v) @ p.normal_       # behind the glass face
+                assert v[:, 2].min() <= z_lo + POS_TOL_MM
+                assert v[:, 2].max() >= z_lo + cad["end_stop_height_mm"] - POS_TOL_MM
+                assert depth.min() <= t_mm - cad["end_stop_depth_mm"] + POS_TOL_MM
+                assert depth.min() >= -POS_TOL_MM                 # never in front of the glass
+            pocket = p.length * 1000 + sum(travel)
+            np.testing.assert_allclose(pocket, p.length * 1000 + clr, atol=POS_TOL_MM,
+                                       err_msg=f"{m.name}: pocket length")
+
+
 def test_base_seats_the_lidar_with_its_scan_plane_at_z0(paper_export, paper_design):
     """The base's top face is the lidar's housing base, scan_plane_height below z = 0."""
     manifest, _ = paper_export
@@ -565,6 +636,38 @@ def test_params_defaults_and_validation():
         mount_params_from_dict({"min_wall_mm": 2.0})       # flange rim would be 1.8 mm
     with pytest.raises(ParameterError, match="cad.stl_tolerance_mm"):
         mount_params_from_dict({"stl_tolerance_mm": 1.0})
+    with pytest.raises(ParameterError, match="cad.end_stop_length_mm"):
+        mount_params_from_dict({"end_stop_length_mm": 1.0})   # below min wall
+    with pytest.raises(ParameterError, match="cad.end_stop_height_mm"):
+        mount_params_from_dict({"end_stop_height_mm": 0.5})   # below min wall
+    with pytest.raises(ParameterError, match="cad.end_stop_depth_mm"):
+        mount_params_from_dict({"end_stop_depth_mm": 0.0})
+
+
+def test_end_stop_limits_from_the_design(paper_design):
+    """The stop and pocket numbers that depend on the design are checked against it (numpy
+    layout, before any solid is built): the stop's top stays below the beam band, its front
+    strictly behind the mirror's face plane, and the end play at a chained joint fits the wedge
+    between the two glass ends (gap < glass thickness * tan(joint angle / 2))."""
+    from nodlidar.cad.mounts import hinge_axes
+
+    spec = paper_design.spec
+    t_mm = spec.mirror.glass_thickness_m * 1000
+    top = spec.mirror.glass_height_m * 500 - MountParams().beam_band_mm
+    hinge_axes(paper_design, MountParams(end_stop_height_mm=top, end_stop_depth_mm=t_mm - 0.1))
+    with pytest.raises(ParameterError, match="cad.end_stop_height_mm"):
+        hinge_axes(paper_design, MountParams(end_stop_height_mm=top + 0.1))
+    with pytest.raises(ParameterError, match="cad.end_stop_depth_mm"):
+        hinge_axes(paper_design, MountParams(end_stop_depth_mm=t_mm))   # flush: a 2nd face
+    # the widest play a joint allows: the narrower of the two chained joints (L1/L2, R1/R2)
+    angles = []
+    for a, b in (("L1", "L2"), ("R1", "R2")):
+        ca = paper_design.mirror(a).patch.along_ @ paper_design.mirror(b).patch.along_
+        angles.append(np.arccos(abs(ca)))
+    limit = 2 * t_mm * np.tan(min(angles) / 2)                 # ~0.73 mm for the paper build
+    hinge_axes(paper_design, MountParams(pocket_clearance_mm=limit - 0.01))
+    with pytest.raises(ParameterError, match="cad.pocket_clearance_mm"):
+        hinge_axes(paper_design, MountParams(pocket_clearance_mm=limit + 0.01))
 
 
 def test_cli_writes_files(tmp_path, capsys):
@@ -638,4 +741,17 @@ def test_cli_param_that_does_not_fit_the_design(tmp_path, capsys):
     assert rc == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "cad.lidar_hole_spacing_mm" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_end_stop_in_the_beam_band_is_one_line(tmp_path, capsys):
+    """An end stop tall enough to reach into the beam band is refused before anything is
+    written: exit 2, one line naming the key, its value and the limit (12 mm here)."""
+    from nodlidar.cli import main
+
+    bad = _paper_with(tmp_path, "bad", cad={"end_stop_height_mm": 14.0})
+    rc = main(["cad", str(bad), "--out", str(tmp_path / "o")])
+    assert rc == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "cad.end_stop_height_mm" in err and "14" in err and "12" in err
     assert not (tmp_path / "o").exists()

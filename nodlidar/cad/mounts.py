@@ -17,8 +17,18 @@ Parts
     glass datum (exactly ``glass_thickness`` behind the solved reflecting face), a skirt
     whose top is the glass seat (``z_min`` of the patch), a hinge tube with a bore on the
     side's hinge axis, and a horn flange (4 holes) at the outer end for the servo horn.
-    The pocket is open in front and at the inner end so no wall stands in a beam path;
-    the glass is bonded to the datum faces.
+    Each glass's pocket is closed at both ends, ``pocket_clearance_mm`` longer than the
+    solved mirror (half of it at each end), so the printed part locates the glass along
+    its length: at a free end (the outer end of the side's outermost mirror, the inner
+    end of its innermost one, both ends of an unchained mirror) by an end stop, a block
+    square to the mirror beyond the patch's ``s`` range, standing ``end_stop_depth_mm``
+    (less than the glass thickness) in front of the datum and ``end_stop_height_mm`` above
+    the seat, so it stays behind the face plane and below the beam band; at a chained
+    joint by the back plate's joint face, which closes the wedge between the two glass
+    ends behind their faces (a face at half the joint angle to each datum that meets the
+    glass's back edge; the wedge is too thin for a square stop of ``min_wall_mm``). The
+    pocket is open in front (the glass goes in from the lidar side) and no wall stands
+    in a beam path; the glass is bonded to the datum faces.
 ``glass_<mirror>`` (reference)
     The mirror glass: its front face *is* the solved :class:`~nodlidar.geometry.MirrorPatch`.
 ``servo_<side>``, ``lidar`` (reference)
@@ -131,6 +141,8 @@ class SideLayout:
     u_lo: float                             # carrier body extent along the axis [mm]
     u_hi: float
     chained: bool
+    stop_polygons: tuple[np.ndarray, ...] = ()   # (4, 2) xy polygons of the end stops
+    stop_ends: tuple[tuple[str, str], ...] = ()  # (mirror name, "outer"/"inner") per stop
 
 
 def _face_ends(patch) -> tuple[np.ndarray, np.ndarray]:
@@ -148,6 +160,19 @@ def _check_vertical(design: Design) -> None:
                                 "vertical mirrors (unperturbed solved designs) only")
 
 
+def _stop_polygon(end: np.ndarray, away: np.ndarray, n: np.ndarray, gap: float,
+                  params: MountParams, t: float) -> np.ndarray:
+    """Plan polygon (4, 2) of an end stop beyond the face end ``end`` (mm).
+
+    ``away`` points along the mirror away from the glass, ``n`` is the face normal. The
+    stop runs from ``gap`` to ``gap + end_stop_length_mm`` beyond the end and from
+    ``end_stop_depth_mm`` in front of the glass datum back to the back plate's rear face.
+    """
+    a0, a1 = end + gap * away, end + (gap + params.end_stop_length_mm) * away
+    front, back = t - params.end_stop_depth_mm, t + params.wall_mm
+    return np.array([a0 - front * n, a1 - front * n, a1 - back * n, a0 - back * n])[:, :2]
+
+
 def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
     """Plan-view layout of each side carrier (see the module docstring for the axis rule)."""
     from scipy.spatial import ConvexHull
@@ -155,7 +180,16 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
     _check_vertical(design)
     t = mm_from_m(design.spec.mirror.glass_thickness_m)
     w = params.wall_mm
-    clr = params.pocket_clearance_mm
+    gap = params.pocket_clearance_mm / 2          # length play at each end of a pocket
+    half_h = float(mm_from_m(design.spec.mirror.glass_height_m)) / 2
+    if params.end_stop_height_mm > half_h - params.beam_band_mm:
+        raise ParameterError("cad.end_stop_height_mm", params.end_stop_height_mm,
+                             f"<= mirror.glass_height/2 - cad.beam_band_mm = "
+                             f"{half_h - params.beam_band_mm:g} mm (the stops stay below the beams)")
+    if params.end_stop_depth_mm >= t:
+        raise ParameterError("cad.end_stop_depth_mm", params.end_stop_depth_mm,
+                             f"< mirror.glass_thickness = {t:g} mm (the stops stay behind the "
+                             "mirror's face plane; a flush stop would be a second face in it)")
     hinge_z = float(mm_from_m(design.spec.mirror.hinge_z_m))
     lift = float(design.spec.mirror.lift_angle_rad)
     out: dict[str, SideLayout] = {}
@@ -174,27 +208,42 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
             towards_lidar = np.cross(dirs[j], normals[j])[2]
             if turn * towards_lidar < -1e-12:
                 chained = False
-        o1 = ends[0][0] - clr * dirs[0]
-        im = ends[-1][1] + clr * dirs[-1]
-        fronts = [o1] + [p for o, i in ends for p in (o, i)] + [im]
+        # every pocket: the glass plus `gap` at each end, at the datum (depth t)
+        los = [o - gap * d for (o, _), d in zip(ends, dirs, strict=True)]
+        his = [i + gap * d for (_, i), d in zip(ends, dirs, strict=True)]
+        fronts = [p for o, i in ends for p in (o, i)] + los + his
+        stops: list[np.ndarray] = []
+        stop_ends: list[tuple[str, str]] = []
         if chained:
+            for j in range(len(ms) - 1):
+                # the joint face (datum end of j to datum start of j + 1) must still run
+                # inwards: the wedge between the glass ends holds gap < t tan(angle / 2)
+                ang = float(np.arccos(np.clip(dirs[j] @ dirs[j + 1], -1.0, 1.0)))
+                p1, p2 = his[j] - t * normals[j], los[j + 1] - t * normals[j + 1]
+                if (p2 - p1) @ (dirs[j] + dirs[j + 1]) <= 1e-9:
+                    raise ParameterError(
+                        "cad.pocket_clearance_mm", params.pocket_clearance_mm,
+                        f"< {2 * t * np.tan(ang / 2):.3g} mm at the {ms[j].name}/{ms[j + 1].name} "
+                        "joint (2 x glass thickness x tan(joint angle / 2))")
             inner, outer = [], []
-            for j, (o, i) in enumerate(ends):
-                o = o1 if j == 0 else o
-                i = im if j == len(ms) - 1 else i
+            for j in range(len(ms)):
                 n = normals[j]
-                inner += [o - t * n, i - t * n]
-                outer += [o - (t + w) * n, i - (t + w) * n]
+                inner += [los[j] - t * n, his[j] - t * n]
+                outer += [los[j] - (t + w) * n, his[j] - (t + w) * n]
             polys = (np.array(inner + outer[::-1])[:, :2],)
+            free = [(0, "outer"), (len(ms) - 1, "inner")]
         else:
-            polys = []
-            for j, (o, i) in enumerate(ends):
-                o = o - clr * dirs[j]
-                i = i + clr * dirs[j]
-                n = normals[j]
-                polys.append(np.array([o - t * n, i - t * n, i - (t + w) * n,
-                                       o - (t + w) * n])[:, :2])
-            polys = tuple(polys)
+            polys = tuple(np.array([lo - t * n, hi - t * n, hi - (t + w) * n,
+                                    lo - (t + w) * n])[:, :2]
+                          for lo, hi, n in zip(los, his, normals, strict=True))
+            free = [(j, e) for j in range(len(ms)) for e in ("outer", "inner")]
+        for j, which in free:
+            o, i = ends[j]
+            end, away = (o, -dirs[j]) if which == "outer" else (i, dirs[j])
+            stops.append(_stop_polygon(end, away, normals[j], gap, params, t))
+            stop_ends.append((ms[j].name, which))
+        # the stops' lidar-ward corners count as carrier fronts for the axis rule
+        fronts += [np.r_[q, 0.0] for sp in stops for q in sp[:2]]
         # hinge axis: chord direction, through the most lidar-ward face point
         c = unit(np.r_[(ends[-1][1] - ends[0][0])[:2], 0.0])
         wdir = np.cross(c, EZ)
@@ -207,14 +256,15 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
         sign = 1.0 if np.cross(c, EZ) @ wdir > 0 else -1.0
         axis = HingeAxis(side=side, point_mm=tuple(map(float, a0)), direction=tuple(map(float, c)),
                          outward=tuple(map(float, wdir)), lift_rad=sign * lift)
-        pts = np.vstack([*polys, np.array(fronts)[:, :2]])
+        pts = np.vstack([*polys, *stops, np.array(fronts)[:, :2]])
         u = (pts - a0[:2]) @ c[:2]
         ax_pts = np.array([a0[:2] + u.min() * c[:2], a0[:2] + u.max() * c[:2]])
         allp = np.vstack([pts, ax_pts])
         hull = allp[ConvexHull(allp).vertices]
         out[side] = SideLayout(side=side, mirror_names=tuple(m.name for m in ms), axis=axis,
                                back_polygons=polys, skirt_polygon=hull, u_lo=float(u.min()),
-                               u_hi=float(u.max()), chained=chained)
+                               u_hi=float(u.max()), chained=chained, stop_polygons=tuple(stops),
+                               stop_ends=tuple(stop_ends))
     return out
 
 
@@ -411,6 +461,8 @@ def build_mounts(design: Design, params: MountParams | None = None) -> MountMode
                           side=m.side, color=(0.55, 0.8, 0.95, 0.6),
                           description=f"mirror glass {m.name}: front face = solved patch"))
 
+    glass_parts = list(parts)
+
     # -- carriers ------------------------------------------------------------------
     neck = P.clearance_mm + 3.0                  # room for the horn screws behind the flange
     base_extra: list[Any] = []
@@ -420,6 +472,16 @@ def build_mounts(design: Design, params: MountParams | None = None) -> MountMode
         ax = lay.axis
         solids = [_prism(cq, lay.skirt_polygon, z_bot, z_min)]
         solids += [_prism(cq, poly, z_bot, z_max) for poly in lay.back_polygons]
+        stops = [_prism(cq, poly, z_bot, z_min + P.end_stop_height_mm)
+                 for poly in lay.stop_polygons]
+        for stop, (mname, which) in zip(stops, lay.stop_ends, strict=True):
+            for g in (g for g in glass_parts if g.side == side):
+                if stop.intersect(g.shape).Volume() > 1e-6:
+                    raise CadBuildError(
+                        f"the end stop at the {which} end of {mname} runs into {g.name}: the "
+                        f"mirrors are too close; use a smaller cad.end_stop_length_mm "
+                        f"({P.end_stop_length_mm:g} mm) or cad.pocket_clearance_mm")
+        solids += stops
         u_fl0 = lay.u_lo - neck - P.flange_thickness_mm
         solids.append(_axis_cyl(cq, ax, r_boss, u_fl0, lay.u_hi))
         solids.append(_axis_cyl(cq, ax, P.horn_radius_mm, u_fl0, u_fl0 + P.flange_thickness_mm))

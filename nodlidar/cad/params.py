@@ -68,7 +68,22 @@ class MountParams:
     servo_clearance_mm : float
         Gap around the servo body in its cradle pocket.
     pocket_clearance_mm : float
-        Gap around the glass at both ends of its pocket (along the mirror).
+        Length play of each glass in its pocket: the pocket is the solved mirror length
+        plus this, half of it at each end (between the glass end and the end stop, or at
+        a chained joint between the glass's back edge and the back plate's joint face).
+        At a chained joint it must stay below ``2 * glass thickness * tan(joint angle / 2)``
+        (the room the wedge between the two glass ends leaves behind the faces).
+    end_stop_length_mm : float
+        Length (along the mirror) of the end stop at each free end of a pocket (the outer
+        end of a side's outermost mirror, the inner end of its innermost one, both ends of
+        an unchained mirror). The stop lies beyond the patch (outside its ``s`` range).
+    end_stop_height_mm : float
+        Height of the end stop above the glass seat. The stop stays below the beams:
+        ``glass_height / 2 - end_stop_height_mm >= beam_band_mm`` (checked at build time).
+    end_stop_depth_mm : float
+        How far the end stop stands in front of the glass datum, towards the glass face:
+        less than the glass thickness (checked at build time), so the stop stays behind the
+        mirror's face plane and the STEP has one face in that plane, the mirror's.
     clearance_mm : float
         Minimum gap between parts that move against each other (carrier/base/pillar).
     beam_band_mm : float
@@ -102,6 +117,9 @@ class MountParams:
     horn_screw: str = "M2"
     servo_clearance_mm: float = 0.3
     pocket_clearance_mm: float = 0.3
+    end_stop_length_mm: float = 3.0
+    end_stop_height_mm: float = 10.0
+    end_stop_depth_mm: float = 1.5
     clearance_mm: float = 1.0
     beam_band_mm: float = 3.0
     stl_tolerance_mm: float = 0.02
@@ -123,7 +141,7 @@ class MountParams:
             require(getattr(self, name) > 0, f"cad.{name}", getattr(self, name), "> 0")
         mw = self.min_wall_mm
         for name in ("wall_mm", "base_thickness_mm", "pillar_thickness_mm",
-                     "flange_thickness_mm"):
+                     "flange_thickness_mm", "end_stop_length_mm", "end_stop_height_mm"):
             require(getattr(self, name) >= mw, f"cad.{name}", getattr(self, name),
                     f">= cad.min_wall_mm = {mw}")
         pin = self.clearance_dia_mm(self.hinge_pin)
