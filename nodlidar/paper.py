@@ -6,11 +6,16 @@ use the same values.
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import MappingProxyType
 
 from .geometry import Perturbation
 
-__all__ = ["TABLE_I_PERTURBATIONS", "TRACKING_SPEED_M_S", "TRACKING_HEADING_DEG"]
+__all__ = ["PAPER_DESIGN", "TABLE_I_PERTURBATIONS", "TRACKING_SPEED_M_S", "TRACKING_HEADING_DEG"]
+
+#: The paper's build (Section III) as a design file: the default design of every command,
+#: found from the package's checkout (``pip install -e``), so it works from any directory.
+PAPER_DESIGN = Path(__file__).resolve().parents[1] / "design" / "urg04lx-paper.toml"
 
 #: Paper Table I: the mounting errors of the four mirrors (dalpha [rad], dbeta [rad],
 #: dd [m]), applied with :meth:`nodlidar.geometry.MirrorPatch.perturbed` (conventions.md,

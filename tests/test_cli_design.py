@@ -118,3 +118,12 @@ def test_device_that_cannot_be_opened_is_one_line_exit_1(capsys, argv):
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert argv[2] in err  # names the port the user gave
+
+
+def test_default_design_is_found_from_any_directory(tmp_path, monkeypatch, capsys):
+    # commands whose --design defaults to the paper's build work outside the checkout
+    monkeypatch.chdir(tmp_path)
+    assert main(["calibrate", "--sim", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["design"] == "urg04lx-paper"
+    assert main(["study", "mirrors", "--scans", "6", "--out", "s"]) == 0
+    assert (tmp_path / "s" / "study_mirrors.md").stat().st_size > 0

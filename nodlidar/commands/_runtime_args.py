@@ -9,12 +9,22 @@ import numpy as np
 
 from ..errors import ParameterError
 
+#: Shown in help texts for the default design (:data:`nodlidar.paper.PAPER_DESIGN`).
+DESIGN_HELP = "design file (default: the paper's build, design/urg04lx-paper.toml)"
 
-def add_device_args(p, *, design: bool = True) -> None:
-    """--design, --port, --servo-port, --calibration and the simulated-sensor options."""
+
+def add_design_arg(p) -> None:
+    """``--design TOML``, defaulting to the paper's build wherever the command runs."""
+    from ..paper import PAPER_DESIGN
+
+    p.add_argument("--design", metavar="TOML", default=str(PAPER_DESIGN), help=DESIGN_HELP)
+
+
+def add_device_args(p, *, design: bool = True, scene: str | None = None) -> None:
+    """--design, --port, --servo-port, --calibration and the simulated-sensor options
+    (``scene``: the simulated sensor's default scene, ``room`` if None)."""
     if design:
-        p.add_argument("--design", metavar="TOML", default=None,
-                       help="design file (default: design/urg04lx-paper.toml)")
+        add_design_arg(p)
         p.add_argument("--calibration", metavar="TOML", default=None,
                        help="calibration file of this design (mirror perturbations)")
     p.add_argument("--port", metavar="URL", default=None,
@@ -26,7 +36,8 @@ def add_device_args(p, *, design: bool = True) -> None:
                    help="simulated sensor: simulated seconds per wall second (e.g. 5)")
     p.add_argument("--sim-transport", choices=("pty", "tcp"), default="pty",
                    help="simulated sensor: serve over pseudo-terminals or TCP (default pty)")
-    p.add_argument("--scene", default=None, help="simulated sensor: scene name or TOML (default room)")
+    p.add_argument("--scene", default=scene,
+                   help=f"simulated sensor: scene name or TOML (default {scene or 'room'})")
     p.add_argument("--no-noise", action="store_true", help="simulated sensor: no range noise")
     p.add_argument("--perturb", choices=("none", "table1"), default="none",
                    help="simulated sensor: as-built mirror errors (table1 = the paper's Table I; "
@@ -37,15 +48,15 @@ def _stderr(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def session_from_args(args):
-    """The :class:`~nodlidar.runtime.session.Session` the options describe; its status and
-    progress lines go to stderr."""
+def session_from_args(args, **kw):
+    """The :class:`~nodlidar.runtime.session.Session` the options describe (``kw`` go to
+    it too, e.g. ``seed``); its status and progress lines go to stderr."""
     from ..runtime.session import Session
 
     return Session(getattr(args, "design", None), port=args.port, servo_port=args.servo_port,
                    calibration=getattr(args, "calibration", None), transport=args.sim_transport,
                    sim_rate=args.sim_rate, scene=args.scene, noise=not args.no_noise,
-                   sim_perturbations=sim_perturbations(args.perturb), log=_stderr)
+                   sim_perturbations=sim_perturbations(args.perturb), log=_stderr, **kw)
 
 
 def sim_perturbations(name: str):

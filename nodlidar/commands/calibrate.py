@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_DESIGN = "design/urg04lx-paper.toml"
+from ._runtime_args import add_design_arg
 
 
 def register(sub) -> None:
@@ -42,7 +42,7 @@ def register(sub) -> None:
     src.add_argument("--live", action="store_true",
                      help="guided capture: one nod sweep per wall orientation, on the device "
                           "(--port/--servo-port) or the simulated sensor")
-    p.add_argument("--design", default=DEFAULT_DESIGN, help=f"design file (default {DEFAULT_DESIGN})")
+    add_design_arg(p)
     p.add_argument("--out", metavar="TOML", help="write the calibration file here")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.add_argument("--model", choices=("exact", "paper"), default="exact",

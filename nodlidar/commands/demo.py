@@ -16,16 +16,17 @@ commands, run in process.
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
-DEFAULT_DESIGN = "design/urg04lx-paper.toml"
+from ._runtime_args import add_design_arg
 
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="run the main job on the paper's build (simulated sensor)",
                        description=__doc__)
-    p.add_argument("--design", default=DEFAULT_DESIGN, help=f"design file (default {DEFAULT_DESIGN})")
+    add_design_arg(p)
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     p.add_argument("--cad-out", default="cad_out", help="CAD output root (default cad_out)")
     p.add_argument("--skip", action="append", default=[],
@@ -57,6 +58,13 @@ class _Steps:
         self.outputs.append((what, Path(path)))
         if echo:  # the sub-commands print their own "wrote" lines
             print(f"   wrote {path}", flush=True)
+
+
+def _short(path) -> str:
+    """``path`` relative to the working directory when it lies below it (for the echoed
+    commands a user may copy), else as given."""
+    rel = os.path.relpath(path)
+    return str(path) if rel.startswith("..") else rel
 
 
 def run(args) -> int:
@@ -100,7 +108,8 @@ def run(args) -> int:
         if code:
             raise SystemExit(code)
 
-    sim = ["--design", str(args.design), "--sim-rate", "4", "--perturb", "table1"]
+    design_arg = _short(args.design)
+    sim = ["--design", design_arg, "--sim-rate", "4", "--perturb", "table1"]
     if "scan" not in args.skip:
         steps.start("simulated sensor: one nod sweep, mirrors deployed, as built (Table I), uncalibrated")
         command(["scan", *sim, "--out", str(out / "scan_uncalibrated.ply")])
@@ -109,7 +118,7 @@ def run(args) -> int:
     if "calibrate" not in args.skip:
         steps.start("calibration against three simulated walls (paper Section IV)")
         cal = out / "calibration.toml"
-        command(["calibrate", "--design", str(args.design), "--sim", "--perturb", "table1",
+        command(["calibrate", "--design", design_arg, "--sim", "--perturb", "table1",
                  "--out", str(cal), "--plot", str(out / "calibration.png")])
         steps.output("calibration", cal, echo=False)
         steps.output("calibration plot", out / "calibration.png", echo=False)
@@ -120,7 +129,7 @@ def run(args) -> int:
 
     if "study" not in args.skip:
         steps.start("moving-object tracking: mirrors deployed vs lifted (paper Section VI)")
-        command(["study", "mirrors", "--design", str(args.design), "--out", str(out / "study")])
+        command(["study", "mirrors", "--design", design_arg, "--out", str(out / "study")])
         steps.output("tracking study", out / "study" / "study_mirrors.md", echo=False)
 
     steps.done()

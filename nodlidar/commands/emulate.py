@@ -11,12 +11,13 @@ import signal
 import sys
 import threading
 
+from ._runtime_args import add_design_arg
+
 
 def register(sub) -> None:
     p = sub.add_parser("emulate", help="serve a simulated lidar + servo bus (pty or TCP)",
                        description=__doc__)
-    p.add_argument("--design", default="design/urg04lx-paper.toml",
-                   help="design TOML file (default: design/urg04lx-paper.toml)")
+    add_design_arg(p)
     p.add_argument("--scene", default="room",
                    help="room | paper-tracking | wall | FILE.toml (default: room)")
     p.add_argument("--tcp", action="store_true", help="serve on TCP (socket:// URLs), not ptys")

@@ -12,12 +12,14 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from ._runtime_args import add_design_arg
+
 
 def register(sub) -> None:
     p = sub.add_parser("study", help="mirror vs no-mirror tracking study (paper Section VI)",
                        description=__doc__)
     p.add_argument("which", choices=["mirrors"], help="the study to run")
-    p.add_argument("--design", default="design/urg04lx-paper.toml", help="design TOML")
+    add_design_arg(p)
     p.add_argument("--out", default="study_out", help="output directory (default study_out)")
     p.add_argument("--scans", type=int, default=38, help="lidar scans per run (paper: 38)")
     p.add_argument("--entropy", choices=("voxel", "renyi", "both"), default="both")

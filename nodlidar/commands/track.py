@@ -22,6 +22,8 @@ import json
 import math
 import sys
 
+from ._runtime_args import add_device_args, session_from_args
+
 
 def register(sub) -> None:
     from ..tracking.recording import DEFAULT_SENSOR_HEIGHT_M
@@ -31,9 +33,6 @@ def register(sub) -> None:
     p.add_argument("recording", nargs="?",
                    help="recording made by nodlidar record (a bag folder), or 'live'")
     p.add_argument("--sim", action="store_true", help="use the simulator's direct API")
-    p.add_argument("--design", default="design/urg04lx-paper.toml", help="design TOML")
-    p.add_argument("--scene", default="paper-tracking",
-                   help="simulator scene (name or TOML) for --sim and a simulated live sensor")
     p.add_argument("--scans", type=int, default=60, help="scans to simulate / track live (default 60)")
     p.add_argument("--lifted", action="store_true", help="mirrors lifted (--sim and live)")
     p.add_argument("--entropy", choices=("renyi", "voxel"), default="renyi")
@@ -42,16 +41,8 @@ def register(sub) -> None:
     p.add_argument("--sensor-height", type=float, default=DEFAULT_SENSOR_HEIGHT_M, metavar="M",
                    help="recording/live: sensor base height above the floor [m] "
                         f"(default {DEFAULT_SENSOR_HEIGHT_M}, the paper's Pioneer mount)")
-    lv = p.add_argument_group("live")
-    lv.add_argument("--port", metavar="URL", default=None,
-                    help="lidar port (default: the simulated sensor)")
-    lv.add_argument("--servo-port", metavar="URL", default=None, help="Dynamixel bus port")
-    lv.add_argument("--calibration", metavar="TOML", default=None,
-                    help="calibration file of this design (mirror perturbations)")
-    lv.add_argument("--sim-rate", type=float, default=1.0, metavar="X",
-                    help="simulated sensor: simulated seconds per wall second")
-    lv.add_argument("--perturb", choices=("none", "table1"), default="none",
-                    help="simulated sensor: as-built mirror errors (default none)")
+    # the runtime commands' device options; --scene and the --sim options also drive --sim
+    add_device_args(p.add_argument_group("sensor (live, and --sim)"), scene="paper-tracking")
     p.set_defaults(func=run)
 
 
@@ -75,16 +66,9 @@ class _Printer:
 
 def _live(args, step) -> None:
     """Track from a runtime session (device or simulated sensor) as scans arrive."""
-    from ..errors import require
-    from ..runtime.session import Session
     from ..tracking.recording import LiveScans
-    from ._runtime_args import sim_perturbations
 
-    require(args.sim_rate > 0, "--sim-rate", args.sim_rate, "> 0")
-    with Session(args.design, port=args.port, servo_port=args.servo_port,
-                 calibration=args.calibration, scene=args.scene, sim_rate=args.sim_rate,
-                 seed=args.seed, sim_perturbations=sim_perturbations(args.perturb),
-                 log=lambda msg: print(msg, file=sys.stderr, flush=True)) as s:
+    with session_from_args(args, seed=args.seed) as s:
         live = LiveScans(s.model, (s.lift_left, s.lift_right),
                          sensor_height_m=args.sensor_height)
 
@@ -137,7 +121,7 @@ def run(args) -> int:
         from ..tracking.simdata import simulate_scans
 
         scans = simulate_scans(design, args.scans, mirrors_deployed=not args.lifted,
-                               scene=args.scene, seed=args.seed)
+                               scene=args.scene, noise=not args.no_noise, seed=args.seed)
     for scan in scans:
         step(scan)
     sys.stdout.flush()

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import DeviceError, ParameterError, require
+from ..paper import PAPER_DESIGN as DEFAULT_DESIGN
 from .actuators import (
     MIRROR_LEFT_ID,
     MIRROR_RIGHT_ID,
@@ -39,7 +40,6 @@ from .assembly import AssemblyModel, PointCloud, ScanBatch, assemble
 
 __all__ = ["Session", "Capture", "DEFAULT_DESIGN", "JOINT_IDS"]
 
-DEFAULT_DESIGN = Path(__file__).resolve().parents[2] / "design" / "urg04lx-paper.toml"
 JOINT_IDS = {"nod": NOD_ID, "mirror_left": MIRROR_LEFT_ID, "mirror_right": MIRROR_RIGHT_ID}
 
 
