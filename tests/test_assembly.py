@@ -92,6 +92,8 @@ def test_beam_times_and_per_beam_nod_vs_linear_ramp():
     assert_allclose(pc.t, t_hand, atol=1e-12, rtol=0)  # float rounding only
     expected = model.deployed.points(pc.step, pc.range_m, PROFILE.angle_at(t_hand))
     assert_allclose(pc.xyz, expected, atol=1e-12, rtol=0)
+    # the cloud keeps each beam's nod angle: the ramp's at the hand-written time
+    assert_allclose(pc.nod_rad, PROFILE.angle_at(t_hand), atol=1e-12, rtol=0)
     # the nod turns by 0.5 rad/s x 0.0666 s = 33 mrad across one scan's valid steps: using
     # the scan's time for every beam would misplace far beams by centimetres
     coarse = model.deployed.points(pc.step, pc.range_m, PROFILE.angle_at(0.1 + pc.scan * 0.1))
@@ -136,6 +138,9 @@ def test_mirror_lift_states_per_side():
     hit = np.isfinite(truth[:, 0])
     assert_allclose(pc.xyz, truth[hit], atol=1e-9, rtol=0)
     assert not np.isin(pc.mirror, left_ids).any() and np.isin(pc.mirror, [2, 3]).any()
+    # lifted = exactly the beams of the left window's steps (the design's map, independently)
+    left_steps = np.isin(DESIGN.mirror_of_step[pc.step - LIDAR.step_min], left_ids)
+    assert_array_equal(pc.lifted, left_steps)
 
     # the left servo moves from deployed to lifted between t1 and t2 (inside scan 1)
     t1, t2 = 0.22, 0.25

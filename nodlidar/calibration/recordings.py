@@ -42,26 +42,22 @@ def capture_from_scans(design, scans, nod, *, mirror_left=None, mirror_right=Non
     name : str
         Label for reports.
     """
-    from ..beams import DIRECT
-    from ..runtime.assembly import AngleSamples, AssemblyModel, assemble
+    from ..runtime.assembly import AssemblyModel, assemble
 
     if not mirrors_deployed:
         mirror_left = mirror_right = "lifted"
     model = AssemblyModel.from_design(design)
     cloud = assemble(model, scans, nod, mirror_left=mirror_left, mirror_right=mirror_right,
                      lift_left=lift_left, lift_right=lift_right)
-    # the assembly turns a lifted side's beams into direct ones (mirror -1 on a reflected
-    # window's step): keep them only for an all-lifted capture
-    designed = model.deployed.mirror_index(cloud.step)
-    keep = (cloud.mirror != DIRECT) | (designed == DIRECT) if mirrors_deployed else \
-        np.ones(len(cloud), bool)
+    # a lifted side's beams are projected as direct ones: keep them only for an all-lifted
+    # capture (the fit maps the reflected windows' steps through the deployed mirrors)
+    keep = ~cloud.lifted if mirrors_deployed else np.ones(len(cloud), bool)
     if not keep.any():
         raise CalibrationError(f"{name or 'capture'}: no usable beam (none inside the nod samples' "
                                "time span with its mirror deployed); are the scan and servo "
                                "clocks the same?")
-    nod_rad = AngleSamples.of(nod).at(cloud.t[keep])  # the assembly's own interpolation
     return WallCapture(steps=cloud.step[keep].astype(int), ranges_m=cloud.range_m[keep],
-                       nod_rad=nod_rad, mirrors_deployed=mirrors_deployed, name=name)
+                       nod_rad=cloud.nod_rad[keep], mirrors_deployed=mirrors_deployed, name=name)
 
 
 def capture_from_capture(design, capture, *, name: str = "") -> WallCapture:

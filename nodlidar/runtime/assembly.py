@@ -76,6 +76,12 @@ class PointCloud:
     mirror_names : tuple of str
     meta : dict
         Extra counters (e.g. beams dropped while a mirror moved).
+    nod_rad : (n,) float or None
+        Head pitch at each beam's time [rad], as the assembly interpolated it (None for a
+        cloud read from a file).
+    lifted : (n,) bool or None
+        The beam's mirror side was lifted (it was projected as a direct beam although its
+        step lies in a reflected window); None for a cloud read from a file.
     """
 
     xyz: np.ndarray
@@ -90,13 +96,16 @@ class PointCloud:
     calibration_id: str = "none"
     mirror_names: tuple[str, ...] = ()
     meta: Mapping[str, Any] = field(default_factory=dict)
+    nod_rad: np.ndarray | None = None
+    lifted: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.t)
         require(np.shape(self.xyz) == (n, 3), "cloud.xyz.shape", np.shape(self.xyz), f"({n}, 3)")
-        for name in ("step", "mirror", "scan", "range_m"):
+        for name in ("step", "mirror", "scan", "range_m", "nod_rad", "lifted"):
             a = getattr(self, name)
-            require(np.shape(a) == (n,), f"cloud.{name}.shape", np.shape(a), f"({n},)")
+            if a is not None:
+                require(np.shape(a) == (n,), f"cloud.{name}.shape", np.shape(a), f"({n},)")
         require(self.frame in FRAMES, "cloud.frame", self.frame, ", ".join(FRAMES))
 
     def __len__(self) -> int:
@@ -104,15 +113,20 @@ class PointCloud:
 
     def select(self, mask: np.ndarray) -> PointCloud:
         """The points where ``mask`` (n,) bool (or an index array) holds."""
+        def opt(a):
+            return None if a is None else a[mask]
+
         return PointCloud(self.xyz[mask], self.t[mask], self.step[mask], self.mirror[mask],
                           self.scan[mask], self.range_m[mask], self.frame, self.design_name,
-                          self.design_hash, self.calibration_id, self.mirror_names, dict(self.meta))
+                          self.design_hash, self.calibration_id, self.mirror_names, dict(self.meta),
+                          opt(self.nod_rad), opt(self.lifted))
 
     def with_xyz(self, xyz: np.ndarray, frame: str) -> PointCloud:
         """Same points expressed in another frame."""
         return PointCloud(np.asarray(xyz, dtype=float), self.t, self.step, self.mirror, self.scan,
                           self.range_m, frame, self.design_name, self.design_hash,
-                          self.calibration_id, self.mirror_names, dict(self.meta))
+                          self.calibration_id, self.mirror_names, dict(self.meta), self.nod_rad,
+                          self.lifted)
 
 
 @dataclass(frozen=True, eq=False)
@@ -486,5 +500,6 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
                           mirror_moving=n_moving, blocked=n_blocked, points=len(r))
     return PointCloud(xyz, t, steps.astype(np.int32), mirror.astype(np.int16),
                       scan_i.astype(np.int32), r, frame, model.design_name, model.design_hash,
-                      model.calibration_id, model.deployed.mirror_names, asdict(stats))
+                      model.calibration_id, model.deployed.mirror_names, asdict(stats),
+                      nod_rad, lifted)
 

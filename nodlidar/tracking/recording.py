@@ -51,8 +51,7 @@ def scans_from_capture(model, scans, joints, lift_profiles=(None, None), *,
     first_index : int
         ``ScanPoints.scan`` of the first scan (scan indices count on across calls).
     """
-    from ..beams import DIRECT
-    from ..runtime.assembly import AngleSamples, ScanBatch, assemble
+    from ..runtime.assembly import ScanBatch, assemble
 
     if not scans:
         return []
@@ -72,9 +71,7 @@ def scans_from_capture(model, scans, joints, lift_profiles=(None, None), *,
     step, scan_i, t = cloud.step.astype(int), cloud.scan.astype(int), cloud.t
     missing = grid[scan_i, step - lidar.step_min]
     rng = np.where(missing, np.nan, cloud.range_m)
-    nod = AngleSamples.of(joints["nod"]).at(t)  # the assembly's interpolation, as it kept them
-    # the assembly maps a lifted side's beams to direct: those took the lifted BeamModel
-    lifted = (cloud.mirror == DIRECT) & (model.deployed.mirror_index(step) != DIRECT)
+    nod, lifted = cloud.nod_rad, cloud.lifted  # as the assembly decided them for each beam
     start, direc, off = np.empty((len(t), 3)), np.empty((len(t), 3)), np.empty(len(t))
     for bm, sel in ((model.deployed, ~lifted), (model.lifted, lifted)):
         if sel.any():
