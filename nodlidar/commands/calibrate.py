@@ -112,14 +112,11 @@ def _ask(prompt: str, wait: bool) -> None:
 def _live_captures(args, design, truth) -> tuple[list, str]:
     """Guided capture: one nod sweep per wall orientation (device, or the simulated sensor)."""
     from ..calibration.recordings import capture_from_capture
-    from ..errors import ParameterError, require
+    from ..errors import require
     from ..runtime.session import Session
 
     require(args.sim_rate > 0, "--sim-rate", args.sim_rate, "> 0")
-    if (args.port is None) != (args.servo_port is None):
-        raise ParameterError("--port/--servo-port", (args.port, args.servo_port),
-                             "both (hardware) or neither (the simulated sensor)")
-    caps = []
+    caps = []  # (--port without --servo-port is refused by the Session)
 
     def sweep(session, k: int, n: int) -> None:
         cap = session.sweep()
