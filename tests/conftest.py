@@ -17,3 +17,11 @@ def _close_figures():
 
     if "matplotlib.pyplot" in sys.modules:
         sys.modules["matplotlib.pyplot"].close("all")
+
+
+def pytest_collection_modifyitems(config, items):
+    """CAD exports and notebook runs take tens of seconds each: they count as slow, so
+    ``make test-fast`` (``-m "not slow"``) skips them while ``make test`` still runs them."""
+    for item in items:
+        if item.get_closest_marker("cad") or item.get_closest_marker("notebook"):
+            item.add_marker(pytest.mark.slow)
