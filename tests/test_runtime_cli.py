@@ -165,7 +165,10 @@ def test_record_replay_same_cloud(capsys, tmp_path):
     assert_array_equal(rep.mirror, live.mirror)
     assert_array_equal(rep.range_m, live.range_m)  # raw SCIP frames: exact mm
     assert_allclose(rep.t, live.t, atol=1e-9, rtol=0)
-    assert_allclose(rep.xyz, live.xyz, atol=1e-8, rtol=0)  # 1 ns x 0.35 rad/s x 6 m << 1e-8
+    # 1 ns x 0.35 rad/s x 6 m << 1e-8 before writing; the files hold float32 x y z (PCL and
+    # Open3D need it): two values 1e-8 apart round at most one float32 ulp apart, and an
+    # ulp at |x| < 16 m is 2**-20 m = 9.5e-7 m
+    assert_allclose(rep.xyz, live.xyz, atol=2.0**-20, rtol=0)
 
 
 def test_record_seconds_and_frames(capsys, tmp_path):
@@ -182,7 +185,9 @@ def test_record_seconds_and_frames(capsys, tmp_path):
     w, s = read_cloud(tmp_path / "w.ply"), read_cloud(tmp_path / "s.ply")
     # yaw 90 deg: (x, y, z) -> (-y, x, z) + (1, 2, 0.5)
     expected = np.stack([-s.xyz[:, 1] + 1, s.xyz[:, 0] + 2, s.xyz[:, 2] + 0.5], -1)
-    assert_allclose(w.xyz, expected, atol=1e-12, rtol=0)
+    # both files hold float32 x y z: each is within half a float32 ulp (<= 2**-21 m at
+    # |x| < 16 m) of the exact value
+    assert_allclose(w.xyz, expected, atol=2 * 2.0**-21, rtol=0)
     assert w.frame == "world"
 
 

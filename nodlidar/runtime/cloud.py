@@ -1,13 +1,18 @@
-"""Point-cloud files: PLY (binary little-endian or ASCII) and PCD (ASCII or binary).
+"""Point-cloud files: PLY (binary little-endian or ASCII) and PCD v0.7 (ASCII or binary).
 
-Every point carries ``x y z`` (float32 or float64) plus ``t`` (float64 [s]), ``step``
-(int32), ``mirror`` (int16, -1 direct), ``scan`` (int32) and ``range`` (float64 [m]).
-The cloud's frame, design name/hash, calibration id and mirror names go into header
-comments (``comment nodlidar key=value`` in PLY, ``# nodlidar key=value`` in PCD), so a
-file read back is the same :class:`~nodlidar.runtime.assembly.PointCloud`.
+Every point carries ``x y z`` (float32 by default, float64 on request) plus ``t``
+(float64 [s]), ``range`` (float64 [m]), ``step`` (int32), ``mirror`` (int32, -1 direct),
+``scan`` (int32) and, for an assembled cloud, ``nod`` (float32 [rad], head pitch at the
+beam's time) and ``lifted`` (uint8, 1 = the beam's mirror side was lifted). The cloud's
+frame, design name/hash, calibration id and mirror names go into header comments
+(``comment nodlidar key=value`` in PLY, ``# nodlidar key=value`` in PCD), so a file read
+back is the same :class:`~nodlidar.runtime.assembly.PointCloud`.
 
-Other tools (trimesh, Open3D, CloudCompare, PCL) read the files as ordinary clouds with
-extra scalar fields.
+Types are the ones every common reader keeps: PCL and Open3D need float32 ``x y z``
+(Open3D's legacy reader loads float64 xyz as all zeros, PCL finds no 'x'); Open3D's
+tensor PLY reader drops ``char``, ``short``, ``ushort`` and ``uint`` properties and keeps
+``float``, ``double``, ``int`` and ``uchar`` (checked with Open3D 0.20), so only those
+four are written.
 """
 
 from __future__ import annotations
@@ -18,15 +23,20 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DesignFileError, ParameterError, require
-from .assembly import PointCloud
+from .assembly import FRAMES, PointCloud
 
-__all__ = ["write_cloud", "read_cloud", "write_ply", "read_ply", "write_pcd", "read_pcd"]
+__all__ = ["FIELDS", "structured", "write_cloud", "read_cloud", "write_ply", "read_ply",
+           "write_pcd", "read_pcd"]
 
-# name in file, PointCloud attribute, dtype
-_EXTRA = (("t", "t", "<f8"), ("step", "step", "<i4"), ("mirror", "mirror", "<i2"),
-          ("scan", "scan", "<i4"), ("range", "range_m", "<f8"))
-_PLY_TYPE = {"<f4": "float", "<f8": "double", "<i4": "int", "<i2": "short", "<u1": "uchar",
-             "<i1": "char", "<u2": "ushort", "<u4": "uint"}
+# name in file, PointCloud attribute, dtype (float32/float64/int32/uint8 only: see above)
+_EXTRA = (("t", "t", "<f8"), ("range", "range_m", "<f8"), ("step", "step", "<i4"),
+          ("mirror", "mirror", "<i4"), ("scan", "scan", "<i4"))
+# written only when the cloud has them (an assembled cloud does)
+_OPTIONAL = (("nod", "nod_rad", "<f4"), ("lifted", "lifted", "|u1"))
+#: the field names and types written, in file order (x y z first, then these)
+FIELDS = tuple(f for f, _, _ in _EXTRA + _OPTIONAL)
+_PLY_TYPE = {"<f4": "float", "<f8": "double", "<i4": "int", "<i2": "short", "|u1": "uchar",
+             "|i1": "char", "<u2": "ushort", "<u4": "uint"}
 _PLY_DTYPE = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
               "int": "<i4", "int32": "<i4", "short": "<i2", "int16": "<i2", "uchar": "<u1",
               "uint8": "<u1", "char": "<i1", "int8": "<i1", "ushort": "<u2", "uint16": "<u2",
@@ -40,13 +50,19 @@ def _meta(cloud: PointCloud) -> dict[str, str]:
             "meta": json.dumps(dict(cloud.meta), separators=(",", ":"))}
 
 
-def _structured(cloud: PointCloud, xyz_dtype: str) -> np.ndarray:
-    dt = [("x", xyz_dtype), ("y", xyz_dtype), ("z", xyz_dtype)] + [(f, d) for f, _, d in _EXTRA]
+def structured(cloud: PointCloud, xyz_dtype: str = "<f4") -> np.ndarray:
+    """The cloud as a packed structured array ``(n,)`` in file field order (also the
+    PointCloud2 layout of :mod:`nodlidar.runtime.ros`)."""
+    extra = [(f, a, d) for f, a, d in _EXTRA + _OPTIONAL if getattr(cloud, a) is not None]
+    dt = [("x", xyz_dtype), ("y", xyz_dtype), ("z", xyz_dtype)] + [(f, d) for f, _, d in extra]
     a = np.empty(len(cloud), dtype=dt)
     a["x"], a["y"], a["z"] = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
-    for f, attr, _ in _EXTRA:
+    for f, attr, _ in extra:
         a[f] = getattr(cloud, attr)
     return a
+
+
+_structured = structured
 
 
 def _from_structured(a: np.ndarray, meta: dict[str, str]) -> PointCloud:
@@ -60,14 +76,20 @@ def _from_structured(a: np.ndarray, meta: dict[str, str]) -> PointCloud:
         return a[f].astype(dtype) if f in names else np.full(n, default, dtype=dtype)
 
     xyz = np.stack([a["x"], a["y"], a["z"]], -1).astype(float)
-    extra = json.loads(meta["meta"]) if meta.get("meta") else {}
+    try:
+        extra = json.loads(meta["meta"]) if meta.get("meta") else {}
+    except ValueError:
+        raise DesignFileError("point cloud file: its 'nodlidar meta' comment is not JSON") from None
     mn = meta.get("mirror_names", "")
+    frame = meta.get("frame", "sensor")
+    require(frame in FRAMES, "point cloud file: nodlidar frame", frame, ", ".join(FRAMES))
     return PointCloud(xyz, col("t", float, np.nan), col("step", np.int32, -1),
                       col("mirror", np.int16, -1), col("scan", np.int32, -1),
-                      col("range", float, np.nan), meta.get("frame", "sensor"),
+                      col("range", float, np.nan), frame,
                       meta.get("design_name", ""), meta.get("design_hash", ""),
                       meta.get("calibration_id", "none"), tuple(mn.split(",")) if mn else (),
-                      extra)
+                      extra, a["nod"].astype(float) if "nod" in names else None,
+                      a["lifted"].astype(bool) if "lifted" in names else None)
 
 
 def _check_xyz_type(xyz_type: str) -> str:
@@ -77,7 +99,7 @@ def _check_xyz_type(xyz_type: str) -> str:
 
 # -- PLY --------------------------------------------------------------------------------
 def write_ply(path: str | Path, cloud: PointCloud, *, binary: bool = True,
-              xyz_type: str = "float64") -> Path:
+              xyz_type: str = "float32") -> Path:
     """Write ``cloud`` as PLY (``binary_little_endian`` or ``ascii``); returns the path."""
     a = _structured(cloud, _check_xyz_type(xyz_type))
     fmt = "binary_little_endian" if binary else "ascii"
@@ -97,8 +119,10 @@ def write_ply(path: str | Path, cloud: PointCloud, *, binary: bool = True,
 
 
 def _write_ascii_rows(fh, a: np.ndarray) -> None:
-    # repr-exact floats (17 significant digits) so ASCII round trips bit for bit
-    fmts = ["%.17g" if a.dtype[f].kind == "f" else "%d" for f in a.dtype.names]
+    # shortest repr-exact digits (9 for float32, 17 for float64): ASCII round trips bit
+    # for bit
+    fmts = [("%.9g" if a.dtype[f].itemsize == 4 else "%.17g") if a.dtype[f].kind == "f" else "%d"
+            for f in a.dtype.names]
     if len(a):
         np.savetxt(fh, a, fmt=fmts, delimiter=" ")
 
@@ -172,7 +196,7 @@ def _read_ascii_rows(fh, dt: np.dtype, n: int, p: Path) -> np.ndarray:
 
 # -- PCD --------------------------------------------------------------------------------
 def write_pcd(path: str | Path, cloud: PointCloud, *, binary: bool = True,
-              xyz_type: str = "float64") -> Path:
+              xyz_type: str = "float32") -> Path:
     """Write ``cloud`` as PCD v0.7 (``DATA binary`` or ``ascii``); returns the path."""
     a = _structured(cloud, _check_xyz_type(xyz_type))
     names = a.dtype.names
@@ -222,7 +246,16 @@ def read_pcd(path: str | Path) -> PointCloud:
         if any(c != 1 for c in counts):
             raise DesignFileError(f"{p}: fields with COUNT > 1 are not supported")
         kind = {"F": "f", "I": "i", "U": "u"}
-        dt = np.dtype([(nm, f"<{kind[t]}{s}") for nm, t, s in zip(names, types, sizes)])
+        ok = (len(names) == len(sizes) == len(types) == len(counts) and n >= 0
+              and all((t in ("I", "U") and s in (1, 2, 4, 8)) or (t == "F" and s in (4, 8))
+                      for t, s in zip(types, sizes)))
+        if not ok:
+            raise DesignFileError(f"{p}: malformed PCD header (FIELDS/SIZE/TYPE/COUNT do not "
+                                  "match, or a SIZE/TYPE PCD v0.7 does not allow)")
+        try:
+            dt = np.dtype([(nm, f"<{kind[t]}{s}") for nm, t, s in zip(names, types, sizes)])
+        except ValueError as exc:  # repeated field names
+            raise DesignFileError(f"{p}: malformed PCD header ({exc})") from None
         if data == "binary":
             buf = fh.read(n * dt.itemsize)
             if len(buf) < n * dt.itemsize:
@@ -237,7 +270,7 @@ def read_pcd(path: str | Path) -> PointCloud:
 
 # -- by extension ------------------------------------------------------------------------
 def write_cloud(path: str | Path, cloud: PointCloud, *, binary: bool = True,
-                xyz_type: str = "float64") -> Path:
+                xyz_type: str = "float32") -> Path:
     """Write a ``.ply`` or ``.pcd`` file (chosen by the extension)."""
     suffix = Path(path).suffix.lower()
     if suffix == ".ply":
