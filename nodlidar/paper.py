@@ -6,16 +6,33 @@ use the same values.
 
 from __future__ import annotations
 
+from importlib.resources import files
 from pathlib import Path
 from types import MappingProxyType
 
 from .geometry import Perturbation
 
-__all__ = ["PAPER_DESIGN", "TABLE_I_PERTURBATIONS", "TRACKING_SPEED_M_S", "TRACKING_HEADING_DEG"]
+__all__ = ["PAPER_DESIGN", "design_resource", "TABLE_I_PERTURBATIONS", "TRACKING_SPEED_M_S",
+           "TRACKING_HEADING_DEG"]
+
+
+
+def design_resource(name: str) -> Path:
+    """The path of a design file shipped with the package, e.g. ``"urg04lx-paper.toml"`` or
+    ``"scenes/paper-tracking.toml"``.
+
+    The files are package data (``nodlidar/designs`` is the repository's ``design/``
+    directory), found with :mod:`importlib.resources`, so they are there after a wheel
+    install as well as in a checkout, whatever the working directory.
+    """
+    # a real file on disk: setuptools installs package data unzipped (and the editable
+    # install maps the checkout), so the Traversable is a filesystem path.
+    return Path(str(files(__package__).joinpath("designs", *name.split("/"))))
+
 
 #: The paper's build (Section III) as a design file: the default design of every command,
-#: found from the package's checkout (``pip install -e``), so it works from any directory.
-PAPER_DESIGN = Path(__file__).resolve().parents[1] / "design" / "urg04lx-paper.toml"
+#: a package resource, so it is found from any directory and after a normal install.
+PAPER_DESIGN = design_resource("urg04lx-paper.toml")
 
 #: Paper Table I: the mounting errors of the four mirrors (dalpha [rad], dbeta [rad],
 #: dd [m]), applied with :meth:`nodlidar.geometry.MirrorPatch.perturbed` (conventions.md,

@@ -134,3 +134,76 @@ def test_drift_figures_have_a_panel_for_every_mirror(variant):
         for a in axes:   # one line per range plus the reference line
             assert len(a.get_lines()) == len(drift.ranges_m) + 1
         plt.close(fig)
+
+
+class _Tables:
+    """Every <table> of an HTML document as a list of rows of cell texts (header row first)."""
+
+    def __init__(self, text: str):
+        from html.parser import HTMLParser
+
+        tables: list[list[list[str]]] = []
+        cell: list[str] | None = None
+
+        class P(HTMLParser):
+            def handle_starttag(self, tag, attrs):
+                nonlocal cell
+                if tag == "table":
+                    tables.append([])
+                elif tag == "tr":
+                    tables[-1].append([])
+                elif tag in ("td", "th"):
+                    cell = []
+
+            def handle_endtag(self, tag):
+                nonlocal cell
+                if tag in ("td", "th"):
+                    tables[-1][-1].append("".join(cell).strip())
+                    cell = None
+
+            def handle_data(self, data):
+                if cell is not None:
+                    cell.append(data)
+
+        P(convert_charrefs=True).feed(text)
+        self.tables = tables
+
+
+def test_markdown_tables_render_like_the_html(report_dir):
+    """The Markdown report parsed by a CommonMark + GFM-tables parser (markdown-it-py) gives
+    every table the HTML report has, with the same rows, columns and cell text. A `|` left
+    unescaped in a header cell (e.g. ``max |bearing - target|``) makes GitHub drop the
+    whole table; one in a body cell shifts the columns."""
+    from markdown_it import MarkdownIt
+
+    md_text = (report_dir / "report.md").read_text()
+    rendered = MarkdownIt("commonmark").enable("table").render(md_text)
+    html_tables = _Tables((report_dir / "report.html").read_text()).tables
+    md_tables = _Tables(rendered).tables
+    # what _Doc.table wrote: one Markdown table per delimiter row
+    written = sum(1 for line in md_text.splitlines() if re.fullmatch(r"\|(---\|)+", line))
+    assert len(html_tables) == written >= 10
+    assert len(md_tables) == written
+    for h, m in zip(html_tables, md_tables, strict=True):
+        assert [len(r) for r in m] == [len(r) for r in h], h[0]
+        assert m == h
+    # the headers that used to break, and the absolute-value bars, are there as text
+    headers = [t[0] for t in md_tables]
+    assert ["mirror", "R [m]", "max |bearing - target| [deg]",
+            "max |separation - step| [% of a step]"] in headers
+    assert any("|FD - closed form|" in head for head in headers)
+
+
+def test_markdown_cell_escaping():
+    """Cells with a pipe, a backslash before a pipe, or a line break still make one table of
+    the right shape, and read back as written."""
+    from markdown_it import MarkdownIt
+
+    from nodlidar.analysis.report import _Doc
+
+    doc = _Doc()
+    heads = ["a|b", "c\\", "|x|"]
+    rows = [["1|2", "ends with \\", "two\nlines"], ["x", "", "\\|"]]
+    doc.table(heads, rows)
+    tables = _Tables(MarkdownIt("commonmark").enable("table").render("\n".join(doc.m))).tables
+    assert tables == [[heads, ["1|2", "ends with \\", "two lines"], ["x", "", "\\|"]]]

@@ -161,6 +161,18 @@ def _fmt(v: Any, digits: int = 4) -> str:
     return str(v)
 
 
+def _md_inline(text: str) -> str:
+    """``text`` as one line of Markdown inline text: backslashes escaped (so a trailing one
+    cannot escape what follows) and line breaks folded to spaces."""
+    return " ".join(str(text).replace("\\", "\\\\").split("\n"))
+
+
+def _md_cell(text: str) -> str:
+    """``text`` safe inside a GFM table cell: a ``|`` would end the cell (and a header cell
+    with one makes the whole table fail to render), a line break would end the row."""
+    return _md_inline(text).replace("|", "\\|")
+
+
 class _Doc:
     """Builds the HTML and the Markdown side by side."""
 
@@ -182,17 +194,18 @@ class _Doc:
                       + "</tr></thead><tbody>"
                       + "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>"
                                 for r in cells) + "</tbody></table>")
-        self.m.append("| " + " | ".join(headers) + " |")
+        self.m.append("| " + " | ".join(_md_cell(h) for h in headers) + " |")
         self.m.append("|" + "|".join("---" for _ in headers) + "|")
         for r in cells:
-            self.m.append("| " + " | ".join(c.replace("|", "\\|") for c in r) + " |")
+            self.m.append("| " + " | ".join(_md_cell(c) for c in r) + " |")
         self.m.append("")
 
     def figure(self, png: bytes, rel_path: str, caption: str) -> None:
         b64 = base64.b64encode(png).decode("ascii")
         self.h.append(f'<figure><img src="data:image/png;base64,{b64}" alt="{html.escape(caption)}">'
                       f"<figcaption>{html.escape(caption)}</figcaption></figure>")
-        self.m.append(f"![{caption}]({rel_path})\n\n*{caption}*\n")
+        alt = caption.replace("\\", "\\\\").replace("[", "\\[").replace("]", "\\]")
+        self.m.append(f"![{alt}]({rel_path})\n\n*{_md_inline(caption)}*\n")
 
     def code(self, text: str, lang: str = "toml") -> None:
         self.h.append(f"<pre><code>{html.escape(text)}</code></pre>")
