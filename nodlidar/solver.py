@@ -32,7 +32,7 @@ from functools import cached_property
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
-from .errors import InfeasibleDesignError
+from .errors import InfeasibleDesignError, ParameterError
 from .geometry import (
     MirrorPatch,
     Perturbation,
@@ -45,7 +45,7 @@ from .geometry import (
 from .lidar import LidarModel
 from .spec import DesignSpec
 
-__all__ = ["MirrorSolution", "Design", "solve", "window_steps", "EZ"]
+__all__ = ["MirrorSolution", "Design", "solve", "window_steps", "front_window", "EZ"]
 
 EZ = np.array([0.0, 0.0, 1.0])
 
@@ -94,6 +94,8 @@ class MirrorSolution:
     offset_index: int
     patch: MirrorPatch
     lidar: LidarModel = field(repr=False)
+    anchor: int = -1
+    target_step: int = 0
 
     @property
     def sign(self) -> int:
@@ -102,8 +104,21 @@ class MirrorSolution:
 
     @property
     def anchor_step(self) -> int:
-        """The outermost beam (the paper's OZ)."""
+        """The beam constructed to land exactly on its target (the paper's OZ).
+
+        The outermost beam unless the design file names another; it may lie outside
+        :attr:`steps` (a construction ray only, e.g. the mirrored step 43 of the paper's R1).
+        """
+        if self.anchor >= 0:
+            return int(self.anchor)
         return int(self.steps[-1] if self.side == "L" else self.steps[0])
+
+    @cached_property
+    def _anchor_ray(self) -> tuple[float, np.ndarray, np.ndarray]:
+        """Range to the (infinite) mirror plane, incident and reflected direction of the anchor beam."""
+        u = _u(self.lidar.bearing_from_step(self.anchor_step))
+        t, hit, out = reflect_rays(np.zeros((1, 3)), u[None], self.patch.origin_, self.patch.normal_)
+        return float(t[0]), u, out[0]
 
     @property
     def first_step(self) -> int:
@@ -128,8 +143,7 @@ class MirrorSolution:
     @property
     def oz_m(self) -> float:
         """Range to the mirror along the anchor beam, the paper's OZ [m]."""
-        i = -1 if self.side == "L" else 0
-        return float(self.hit_ranges_m[i])
+        return self._anchor_ray[0]
 
     @property
     def incidence_rad(self) -> np.ndarray:
@@ -140,16 +154,14 @@ class MirrorSolution:
     @property
     def phi_rad(self) -> float:
         """Angle between the anchor beam and the mirror, the paper's phi [rad]."""
-        i = -1 if self.side == "L" else 0
-        return float(np.pi / 2 - self.incidence_rad[i])
+        _, u, _ = self._anchor_ray
+        return float(np.pi / 2 - np.arccos(np.clip(abs(u @ self.patch.normal_), 0, 1)))
 
     @property
     def oa_m(self) -> float:
         """Perpendicular distance from O to the anchor beam's reflected ray, the paper's OA [m]."""
-        i = -1 if self.side == "L" else 0
-        z = _u(self.lidar.bearing_from_step(self.anchor_step)) * self.oz_m
-        d = self._hits[1][i]
-        return float(np.linalg.norm(np.cross(-z, d)))
+        t, u, d = self._anchor_ray
+        return float(np.linalg.norm(np.cross(-u * t, d)))
 
     @property
     def standoff_m(self) -> float:
@@ -222,40 +234,164 @@ class Design:
 # target assignment
 
 
-def _assign(spec: DesignSpec, lidar: LidarModel):
-    """Yield (side, index, steps, q, target_bearing) for every mirror."""
-    k = spec.layout.windows
-    m = spec.layout.mirrors_per_side
-    right, middle, left = window_steps(lidar, k)
-    res = lidar.angular_resolution
-    halves = m == k - 1  # each side fills half of the middle window
-    n_half = (len(middle) + 1) // 2
+@dataclass(frozen=True)
+class _Plan:
+    """What one mirror must do: its beams, its anchor and target slot, how it is placed."""
+
+    name: str
+    side: str
+    index: int
+    steps: np.ndarray
+    anchor: int
+    target_step: int          # g0: the anchor beam lands q/slots of a step beside it
+    q: int                    # 0 <= q < slots
+    standoff_m: float | None  # OA, None when chained
+    chain: bool
+
+    def targets(self, lidar: LidarModel, slots: int) -> np.ndarray:
+        """Target bearing at D of each of :attr:`steps` (reversed fan about the anchor)."""
+        g = self.target_step - (self.steps - self.anchor)
+        return lidar.bearing_from_step(g) + self.q * lidar.angular_resolution / slots
+
+
+def _steps_of(lidar: LidarModel, steps: tuple, deg: tuple, name: str) -> np.ndarray:
+    """Valid steps of a window given by edge steps or edge bearings [deg]."""
+    if steps:
+        lo, hi = steps
+        lidar.check_step(np.array([lo, hi]), name + ".steps")
+        return np.arange(lo, hi + 1)
+    b = np.degrees(lidar.bearing_from_step(lidar.steps))
+    sel = lidar.steps[(b >= deg[0] - 1e-9) & (b <= deg[1] + 1e-9)]
+    if not len(sel):
+        raise ParameterError(name + ".deg", list(deg), f"a range holding at least one step of "
+                             f"{lidar.name} ({b[0]:.2f} .. {b[-1]:.2f} deg)")
+    return sel
+
+
+def front_window(spec: DesignSpec, lidar: LidarModel) -> np.ndarray:
+    """Steps of the unreflected front window, ascending ``(n,) int``."""
+    lay = spec.layout
+    if lay.front_window_steps or lay.front_window_deg:
+        return _steps_of(lidar, lay.front_window_steps, lay.front_window_deg,
+                         "layout.front_window")
+    if spec.placement.mirrors and not lay.side_windows:
+        # explicit mirrors: the run of steps no mirror takes around the front step
+        free = np.ones(lidar.n_steps, bool)
+        for mp in spec.placement.mirrors:
+            free[max(mp.steps[0], lidar.step_min) - lidar.step_min:
+                 min(mp.steps[1], lidar.step_max) - lidar.step_min + 1] = False
+        i = lidar.step_front - lidar.step_min
+        lo, hi = i, i
+        while lo > 0 and free[lo - 1]:
+            lo -= 1
+        while hi < lidar.n_steps - 1 and free[hi + 1]:
+            hi += 1
+        return lidar.steps[lo: hi + 1]
+    if lay.side_windows:
+        raise ParameterError("layout.front_window_steps", [], "[first, last] (or "
+                             "front_window_deg) when side_windows are given")
+    return window_steps(lidar, lay.windows)[1]
+
+
+def _side_windows(spec: DesignSpec, lidar: LidarModel, front: np.ndarray):
+    """(side, steps, offsets) of every reflected window, outermost window of a side first."""
+    lay = spec.layout
+    if not lay.side_windows:
+        right, _, left = window_steps(lidar, lay.windows)
+        m = lay.mirrors_per_side
+        halves = m == lay.windows - 1  # each side fills half of the middle window
+        q_r = tuple(range(1, m + 1)) if halves else tuple(range(m + 1, 2 * m + 1))
+        return [("R", right, m, q_r), ("L", left, m, tuple(range(1, m + 1)))]
     out = []
-    for side, side_steps in (("R", right), ("L", left)):
-        # split side beams; mirror 1 (outermost) takes the extra ones
-        sizes = np.full(m, len(side_steps) // m)
-        sizes[: len(side_steps) % m] += 1
-        # outermost first: for L the highest steps, for R the lowest
-        ordered = side_steps[::-1] if side == "L" else side_steps
-        start = 0
-        for j in range(1, m + 1):
-            chunk = np.sort(ordered[start: start + sizes[j - 1]])
-            start += sizes[j - 1]
-            if halves:
-                q = j
-                sub = middle[:n_half] if side == "L" else middle[n_half:]
-            else:
-                q = j if side == "L" else m + j
-                sub = middle
-            n = len(chunk)
-            if side == "L":
-                # anchor (highest step) -> outer edge slot sub[0]; reversed fan
-                g = sub[0] + np.arange(n)[::-1]
-            else:
-                g = sub[-1] - np.arange(n)
-            target = lidar.bearing_from_step(g) + q * res / k
-            out.append((side, j, chunk, q, target))
+    for i, w in enumerate(lay.side_windows):
+        st = _steps_of(lidar, w.steps, w.deg, f"layout.side_windows[{i}]")
+        if st[0] > front[-1]:
+            side = "L"
+        elif st[-1] < front[0]:
+            side = "R"
+        else:
+            raise ParameterError(f"layout.side_windows[{i}]", [int(st[0]), int(st[-1])],
+                                 f"steps wholly below or above the front window "
+                                 f"{int(front[0])}..{int(front[-1])}")
+        if len(st) < w.mirrors:
+            raise ParameterError(f"layout.side_windows[{i}].mirrors", w.mirrors,
+                                 f"<= its {len(st)} beams")
+        out.append((side, st, w.mirrors, w.offsets))
+    taken = np.concatenate([o[1] for o in out])
+    if len(np.unique(taken)) != len(taken):
+        raise ParameterError("layout.side_windows", [[int(o[1][0]), int(o[1][-1])] for o in out],
+                             "windows that do not overlap")
+    # outermost window of a side first, so mirror numbers count from the outside
+    out.sort(key=lambda o: (o[0], -o[1][-1] if o[0] == "L" else o[1][0]))
     return out
+
+
+def _plans(spec: DesignSpec, lidar: LidarModel) -> tuple[list[_Plan], np.ndarray]:
+    """Every mirror's plan and the front window's steps."""
+    pl = spec.placement
+    k = spec.layout.slots
+    front = front_window(spec, lidar)
+    plans: list[_Plan] = []
+    if pl.mirrors:
+        for mp in pl.mirrors:
+            lidar.check_step(np.array(mp.steps), f"placement.mirrors[{mp.name}].steps")
+            g0 = mp.target_step + mp.target_offset // k
+            plans.append(_Plan(mp.name, mp.side, mp.index, np.arange(mp.steps[0], mp.steps[1] + 1),
+                               int(mp.anchor), int(g0), int(mp.target_offset % k),
+                               None if mp.chain else mp.standoff_m, mp.chain))
+        return plans, front
+    # fill the front window's slots: per offset q, left-side beams from its first step up
+    # and right-side beams from its last step down (a plane mirror reverses the fan, so a
+    # side's outermost beam lands at the far edge)
+    next_g: dict[tuple[str, int], int] = {}
+    count = {"L": 0, "R": 0}
+    for side, st, m, offsets in _side_windows(spec, lidar, front):
+        sizes = np.full(m, len(st) // m)
+        sizes[: len(st) % m] += 1
+        ordered = st[::-1] if side == "L" else st  # outermost first
+        start = 0
+        for j in range(m):
+            chunk = np.sort(ordered[start: start + sizes[j]])
+            start += sizes[j]
+            count[side] += 1
+            idx = count[side]
+            q = offsets[j]
+            key = (side, q)
+            g0 = next_g.get(key, int(front[0]) if side == "L" else int(front[-1]))
+            n = len(chunk)
+            next_g[key] = g0 + n if side == "L" else g0 - n
+            anchor = int(chunk[-1] if side == "L" else chunk[0])
+            # chaining joins the mirrors of one window (another window may lie apart)
+            chained = pl.chain and j > 0
+            oa = None
+            if not chained:
+                oa = pl.standoff_m[0] if pl.chain else pl.standoff_m[min(idx, len(pl.standoff_m)) - 1]
+            plans.append(_Plan(f"{side}{idx}", side, idx, chunk, anchor, g0 + q // k, q % k, oa,
+                               chained))
+    _check_slots(plans, front, lidar, k)
+    return plans, front
+
+
+def _check_slots(plans: list[_Plan], front: np.ndarray, lidar: LidarModel, k: int) -> None:
+    """Refuse splits whose targets leave the front window or share a slot."""
+    owner: dict[tuple[int, int], str] = {}
+    for p in plans:
+        g = p.target_step - (p.steps - p.anchor)
+        out = g[(g < front[0]) | (g > front[-1])]
+        if len(out):
+            raise InfeasibleDesignError(
+                f"mirror {p.name} ({len(p.steps)} beams, steps {p.steps[0]}..{p.steps[-1]}) "
+                f"would land beside steps {g.min()}..{g.max()} but the front window is "
+                f"{front[0]}..{front[-1]} ({len(out)} beams outside): give it fewer beams, "
+                f"another offset, or a wider front window")
+        for gi in g:
+            key = (int(gi), p.q)
+            if key in owner:
+                raise InfeasibleDesignError(
+                    f"mirrors {owner[key]} and {p.name} both send a beam to the slot "
+                    f"{p.q}/{k} of a step beside step {gi}: give them different "
+                    f"layout.side_windows.offsets")
+            owner[key] = p.name
 
 
 # ---------------------------------------------------------------------------------------
@@ -409,20 +545,29 @@ def solve(spec: DesignSpec, *, check: bool = True) -> Design:
     r_clear = lidar.housing_radius_m + pl.clearance_m
     mirrors: list[MirrorSolution] = []
     prev: dict[str, MirrorPatch] = {}
-    for side, j, steps, q, target in _assign(spec, lidar):
-        name = f"{side}{j}"
+    plans, front = _plans(spec, lidar)
+    k = spec.layout.slots
+    for plan in plans:
+        name, side, j, steps, q = plan.name, plan.side, plan.index, plan.steps, plan.q
+        target = plan.targets(lidar, k)
         thetas = lidar.bearing_from_step(steps)
-        a = -1 if side == "L" else 0  # anchor index: the outermost beam
-        theta_z, theta_m = thetas[a], target[a]
+        theta_z = float(lidar.bearing_from_step(plan.anchor))
+        theta_m = float(lidar.bearing_from_step(plan.target_step) + q * lidar.angular_resolution / k)
+        if np.sign(theta_z) != (1 if side == "L" else -1):
+            raise ParameterError(f"placement.mirrors[{name}]", [int(steps[0]), int(steps[-1])],
+                                 f"steps on the {'left (above' if side == 'L' else 'right (below'}"
+                                 f" step {lidar.step_front})")
         m_pt = D * _u(theta_m)
-        if j == 1 or not pl.chain:
-            oa = pl.standoff_m[0 if pl.chain else j - 1]
-            z = _anchor_oz(theta_z, theta_m, oa, D, name) * _u(theta_z)
+        if not plan.chain:
+            z = _anchor_oz(theta_z, theta_m, plan.standoff_m, D, name) * _u(theta_z)
         else:
+            if side not in prev:
+                raise ParameterError(f"placement.mirrors[{name}].chain", True,
+                                     "false for the first mirror of its side")
             z = _chained_anchor(name, _inner_end(prev[side], side), theta_z, m_pt)
         normal = _bisector_normal(z, m_pt)
         if pl.method == "optimal":
-            if j == 1 or not pl.chain:
+            if not plan.chain:
                 normal, point = _optimise_free(name, z, normal, thetas, target, D, r_clear,
                                                lidar.head_radius_m + pl.clearance_m / 2)
             else:
@@ -448,19 +593,19 @@ def solve(spec: DesignSpec, *, check: bool = True) -> Design:
         prev[side] = patch
         mirrors.append(MirrorSolution(name=name, side=side, index=j, steps=steps,
                                       target_bearing=target, offset_index=q, patch=patch,
-                                      lidar=lidar))
+                                      lidar=lidar, anchor=plan.anchor,
+                                      target_step=plan.target_step))
     # order: L1, L2, ..., R1, R2, ...
     mirrors.sort(key=lambda m: (m.side != "L", m.index))
-    _, middle, _ = window_steps(lidar, spec.layout.windows)
-    design = Design(spec=spec, lidar=lidar, mirrors=tuple(mirrors), direct_steps=middle)
+    design = Design(spec=spec, lidar=lidar, mirrors=tuple(mirrors), direct_steps=front)
     from .verify import verify
 
     if not check:
         return design
     report = verify(design)
-    if report.n_blocked:
-        worst = ", ".join(f"{n}: {c}" for n, c in report.blocked_by_mirror().items() if c)
+    bad = report.unexpected_blocked()
+    if bad.any():
         raise InfeasibleDesignError(
-            f"{report.n_blocked} beams are blocked by another mirror or the housing ({worst}); "
-            f"this split cannot be built with these standoffs")
+            f"{int(bad.sum())} beams are blocked by another mirror or the housing "
+            f"({report.describe_blocked(bad)}); this split cannot be built with these standoffs")
     return design

@@ -17,7 +17,6 @@ tables above are errors, so a typo never silently falls back to a default.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,8 @@ from .lidar import LidarModel, lidar_model
 
 __all__ = [
     "LayoutSpec",
+    "SideWindow",
+    "MirrorPlan",
     "PlacementSpec",
     "MirrorSpec",
     "NodSpec",
@@ -39,6 +40,144 @@ __all__ = [
 ]
 
 PLACEMENT_METHODS = ("anchor", "optimal")
+
+
+def _table(cls, value: Any, name: str):
+    """``cls(**value)`` for a TOML sub-table, unknown keys named."""
+    if not isinstance(value, dict):
+        raise ParameterError(name, value, f"a table with keys {', '.join(f.name for f in fields(cls))}")
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(value) - known)
+    require(not unknown, name, unknown, f"keys {', '.join(sorted(known))}")
+    return cls(**value)
+
+
+def _edges(obj: Any, attr: str, name: str, kind: type) -> None:
+    """Normalise an optional ``(first, last)`` pair of ``kind`` on a frozen dataclass."""
+    val = getattr(obj, attr)
+    if val is None or (hasattr(val, "__len__") and len(val) == 0):
+        object.__setattr__(obj, attr, ())
+        return
+    ok = hasattr(val, "__len__") and len(val) == 2
+    if ok and kind is int:
+        ok = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in val)
+    if ok:
+        vals = tuple(kind(v) for v in val)
+        ok = bool(np.all(np.isfinite(vals))) and vals[0] <= vals[1]
+    require(ok, name, val, f"[first, last] ({'integer steps' if kind is int else 'degrees'}), "
+            "first <= last")
+    object.__setattr__(obj, attr, vals)
+
+
+@dataclass
+class _Pair:
+    v: Any
+
+
+@dataclass(frozen=True)
+class SideWindow:
+    """One reflected window of the field of view, given by its edges.
+
+    Attributes
+    ----------
+    steps, deg : (first, last) or ()
+        Edge steps (inclusive) or edge bearings [deg]; exactly one of the two. The window
+        lies wholly on one side of the front window; that fixes its side (L: above it).
+    mirrors : int
+        How many mirrors split it (evenly; the outermost takes any extra beam).
+    offsets : tuple of int
+        Interleave slot ``q`` of each mirror, outermost first, in ``1/slots_per_step`` of a
+        step (default ``1, 2, ..``). Mirrors of a side with the same ``q`` fill the front
+        window one after the other: left-side beams from its first step up, right-side
+        beams from its last step down.
+    """
+
+    steps: tuple[int, ...] = ()
+    deg: tuple[float, ...] = ()
+    mirrors: int = 1
+    offsets: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        require(bool(len(self.steps)) != bool(len(self.deg)), "layout.side_windows.steps/deg",
+                (list(self.steps), list(self.deg)), "exactly one of steps = [first, last] or "
+                "deg = [first, last]")
+        _edges(self, "steps", "layout.side_windows.steps", int)
+        _edges(self, "deg", "layout.side_windows.deg", float)
+        require(isinstance(self.mirrors, int) and self.mirrors >= 1,
+                "layout.side_windows.mirrors", self.mirrors, "an integer >= 1")
+        offs = tuple(self.offsets) if len(self.offsets) else tuple(range(1, self.mirrors + 1))
+        require(len(offs) == self.mirrors and all(isinstance(q, int) and q >= 1 for q in offs),
+                "layout.side_windows.offsets", list(self.offsets),
+                f"{self.mirrors} integers >= 1 (one per mirror, outermost first)")
+        object.__setattr__(self, "offsets", offs)
+
+
+@dataclass(frozen=True)
+class MirrorPlan:
+    """One mirror given explicitly (``[[placement.mirrors]]``), bypassing the window split.
+
+    Attributes
+    ----------
+    name : str
+        ``"L1"``, ``"R2"``...: side letter and position from the outside.
+    steps : (first, last)
+        The beams the mirror takes (inclusive).
+    target_step : int
+        The direct step ``g`` beside which the anchor beam lands.
+    target_offset : int
+        The anchor beam lands ``target_offset / slots_per_step`` of a step anticlockwise of
+        ``g`` (may be negative: clockwise). The other beams follow the reversed fan: step
+        ``anchor + i`` lands beside ``g - i``.
+    anchor_step : int
+        The beam constructed to land exactly on its target (default: the outermost of
+        ``steps``). It may lie outside ``steps`` or the lidar's valid steps: it is then a
+        construction ray only (the paper's right side, mirrored from step 725 to 43).
+    standoff_m : float
+        OA for this mirror [m] (0: chained).
+    chain : bool
+        The mirror starts where the previous mirror of its side (in file order) ends.
+    """
+
+    name: str
+    steps: tuple[int, ...]
+    target_step: int
+    target_offset: int = 1
+    anchor_step: int = -1
+    standoff_m: float = 0.0
+    chain: bool = False
+
+    @property
+    def side(self) -> str:
+        return self.name[0]
+
+    @property
+    def index(self) -> int:
+        return int(self.name[1:])
+
+    @property
+    def anchor(self) -> int:
+        """The anchor step (resolving the default)."""
+        if self.anchor_step >= 0:
+            return self.anchor_step
+        return self.steps[1] if self.side == "L" else self.steps[0]
+
+    def __post_init__(self) -> None:
+        require(isinstance(self.name, str) and len(self.name) >= 2 and self.name[0] in "LR"
+                and self.name[1:].isdigit() and int(self.name[1:]) >= 1,
+                "placement.mirrors.name", self.name, "'L<n>' or 'R<n>', n >= 1")
+        _edges(self, "steps", f"placement.mirrors[{self.name}].steps", int)
+        require(len(self.steps) == 2, f"placement.mirrors[{self.name}].steps", list(self.steps),
+                "[first, last]")
+        for key in ("target_step", "target_offset", "anchor_step"):
+            v = getattr(self, key)
+            require(isinstance(v, (int, np.integer)) and not isinstance(v, bool),
+                    f"placement.mirrors[{self.name}].{key}", v, "an integer")
+        require(self.standoff_m >= 0 and np.isfinite(self.standoff_m),
+                f"placement.mirrors[{self.name}].standoff_m", self.standoff_m,
+                "> 0 m (0 only with chain = true)")
+        require(self.chain or self.standoff_m > 0,
+                f"placement.mirrors[{self.name}].standoff_m", self.standoff_m,
+                "> 0 m unless chain = true")
 
 
 @dataclass(frozen=True)
@@ -54,13 +193,52 @@ class LayoutSpec:
     mirrors_per_side : int
         Mirrors on each side: ``k-1`` (each side fills half the middle window, as in the
         paper) or ``(k-1)/2`` (each side's mirrors span the whole middle window).
+    front_window_steps, front_window_deg : (first, last) or ()
+        The unreflected front window by its edge steps (inclusive) or edge bearings [deg]
+        (steps whose bearing lies within). Default: the middle of ``windows`` equal ones.
+    side_windows : tuple of :class:`SideWindow`
+        The reflected windows by their edges (``[[layout.side_windows]]``). Given, they
+        replace the ``windows``/``mirrors_per_side`` split: sides may differ, one side may
+        be absent, a window may cover part of a side and have any number of mirrors.
+    slots_per_step : int
+        Interleave slots per native step: reflected beams land ``q / slots_per_step`` of a
+        step beside a direct beam (0: ``windows``).
     """
 
     design_distance_m: float
     windows: int = 3
     mirrors_per_side: int = 2
+    front_window_steps: tuple[int, ...] = ()
+    front_window_deg: tuple[float, ...] = ()
+    side_windows: tuple[SideWindow, ...] = ()
+    slots_per_step: int = 0
+
+    @property
+    def slots(self) -> int:
+        """Interleave slots per native step (``slots_per_step``, default ``windows``)."""
+        return self.slots_per_step or self.windows
+
+    @property
+    def max_mirrors_per_side(self) -> int:
+        """Most mirrors on one side (sizes ``placement.standoff_m`` when not chained)."""
+        if not self.side_windows:
+            return self.mirrors_per_side
+        return max(w.mirrors for w in self.side_windows)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "side_windows", tuple(
+            w if isinstance(w, SideWindow) else _table(SideWindow, w, "layout.side_windows")
+            for w in self.side_windows))
+        require(not (self.front_window_steps and self.front_window_deg),
+                "layout.front_window_steps/front_window_deg",
+                (list(self.front_window_steps), list(self.front_window_deg)), "one of the two")
+        _edges(self, "front_window_steps", "layout.front_window_steps", int)
+        _edges(self, "front_window_deg", "layout.front_window_deg", float)
+        require(isinstance(self.slots_per_step, int) and self.slots_per_step >= 0,
+                "layout.slots_per_step", self.slots_per_step,
+                "an integer >= 2 (0: the number of windows)")
+        require(self.slots_per_step != 1, "layout.slots_per_step", self.slots_per_step,
+                "an integer >= 2 (0: the number of windows)")
         require(
             np.isfinite(self.design_distance_m) and self.design_distance_m > 0,
             "layout.design_distance_m", self.design_distance_m, "> 0 m",
@@ -100,6 +278,12 @@ class PlacementSpec:
     margin_steps : float
         A mirror patch extends this many steps beyond its first and last beam (0.5: patch
         edges fall halfway between beams, so neighbouring mirrors meet exactly).
+    mirrors : tuple of :class:`MirrorPlan`
+        Every mirror given explicitly (``[[placement.mirrors]]``); replaces the split of
+        ``[layout]`` and ``standoff_m``/``chain``. Empty: mirrors follow from the layout.
+    shadowed_steps : tuple of (first, last)
+        Beams the design knowingly gives up: reflected beams in these step ranges may be
+        blocked by another mirror; any other blocked beam still refuses the design.
     """
 
     method: str = "anchor"
@@ -107,8 +291,25 @@ class PlacementSpec:
     chain: bool = True
     clearance_m: float = 0.005
     margin_steps: float = 0.5
+    mirrors: tuple[MirrorPlan, ...] = ()
+    shadowed_steps: tuple[tuple[int, ...], ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "mirrors", tuple(
+            m if isinstance(m, MirrorPlan) else _table(MirrorPlan, m, "placement.mirrors")
+            for m in self.mirrors))
+        names = [m.name for m in self.mirrors]
+        require(len(set(names)) == len(names), "placement.mirrors.name", names, "unique names")
+        for m in self.mirrors:
+            first = [p for p in self.mirrors if p.side == m.side][0]
+            require(not (m.chain and m is first), f"placement.mirrors[{m.name}].chain", m.chain,
+                    "false for the first mirror of its side (nothing to chain to)")
+        ranges = []
+        for r in self.shadowed_steps:
+            holder = _Pair(r)
+            _edges(holder, "v", "placement.shadowed_steps", int)
+            ranges.append(holder.v)
+        object.__setattr__(self, "shadowed_steps", tuple(ranges))
         require(self.method in PLACEMENT_METHODS, "placement.method", self.method,
                 " or ".join(PLACEMENT_METHODS))
         object.__setattr__(self, "standoff_m", tuple(float(x) for x in np.atleast_1d(self.standoff_m)))
@@ -217,8 +418,11 @@ class DesignSpec:
                 f"{model.range_min_m} < D <= {model.range_max_m} m for {model.name}")
         for x in self.placement.standoff_m:
             require(x < D, "placement.standoff_m", x, f"< design distance {D} m")
-        if not self.placement.chain:
-            m = self.layout.mirrors_per_side
+        for mp in self.placement.mirrors:
+            require(mp.standoff_m < D, f"placement.mirrors[{mp.name}].standoff_m",
+                    mp.standoff_m, f"< design distance {D} m")
+        if not self.placement.chain and not self.placement.mirrors:
+            m = self.layout.max_mirrors_per_side
             require(len(self.placement.standoff_m) == m, "placement.standoff_m",
                     list(self.placement.standoff_m), f"{m} values (one per mirror) when chain = false")
 
@@ -252,76 +456,133 @@ class DesignSpec:
         out["lidar"] = {"model": self.lidar}
         for sec in ("layout", "placement", "mirror", "nod"):
             d = asdict(getattr(self, sec))
-            out[sec] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
+            # empty optional tables/pairs are left out (TOML has no null, and they are the
+            # defaults); nested tables (side windows, mirror plans) become arrays of tables
+            out[sec] = {k: _plain(v) for k, v in d.items()
+                        if not (isinstance(v, tuple) and len(v) == 0)}
         if self.reference:
             out["reference"] = self.reference
         out.update(self.sections)
         return out
 
 
+def _plain(v: Any) -> Any:
+    """Tuples to lists and nested dicts to plain dicts, recursively (for TOML output)."""
+    if isinstance(v, (tuple, list)):
+        return [_plain(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items() if not (isinstance(x, tuple) and len(x) == 0)}
+    return v
+
+
 _SECTION_TYPES = {"layout": LayoutSpec, "placement": PlacementSpec, "mirror": MirrorSpec,
                   "nod": NodSpec}
 
 
-def _build(cls, table: Any, section: str):
+#: Top-level keys a design file may have: those read here, the free-form [reference], and
+#: the sections other modules own (:data:`OWNED_SECTIONS`, checked by their parsers when
+#: the file is loaded). Anything else is refused with the nearest valid name.
+_TOP_KEYS = ("name", "description", "lidar", "layout", "placement", "mirror", "nod", "reference")
+OWNED_SECTIONS = ("tolerance", "calibration", "cad")
+
+#: Physical bounds checked when a file is loaded (section -> field -> (lo, hi, unit); None:
+#: that side is left to the dataclass). Beyond them the geometry breaks down silently
+#: (e.g. a hinge 1e9 m away gives an all-NaN tolerance table) rather than with an error.
+_LOAD_BOUNDS: dict[str, dict[str, tuple]] = {
+    "layout": {"windows": (3, 21, "")},
+    "placement": {"standoff_m": (None, 1.0, "m"), "clearance_m": (None, 0.5, "m")},
+    "mirror": {"glass_height_m": (None, 0.5, "m"), "glass_thickness_m": (None, 0.05, "m"),
+               "hinge_z_m": (-0.5, 0.5, "m")},
+    "nod": {"rate_rad_s": (1e-3, 2 * np.pi, "rad/s"), "pivot_m": (-1.0, 1.0, "m")},
+}
+
+
+def _build(cls, table: Any, section: str, source: str | None = None):
+    """``cls`` from a TOML table: keys, strict types and physical bounds checked first
+    (:func:`nodlidar.validation.check_fields`)."""
+    from .validation import check_fields
+
     if not isinstance(table, dict):
-        raise DesignFileError(f"[{section}] must be a table, got {type(table).__name__}")
-    known = {f.name for f in fields(cls)}
-    unknown = sorted(set(table) - known)
-    if unknown:
-        raise DesignFileError(
-            f"[{section}] has unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(known))}"
-        )
-    try:
-        return cls(**table)
-    except TypeError as exc:  # missing required field
-        missing = [f.name for f in fields(cls)
-                   if f.name not in table and f.default is f.default_factory]  # noqa: E721
-        raise DesignFileError(
-            f"[{section}] is incomplete: missing {', '.join(missing) or exc}"
-        ) from None
+        raise DesignFileError(f"[{section}] must be a table, got {type(table).__name__}"
+                              + (f" in {source}" if source else ""))
+    return cls(**check_fields(cls, table, section, source, bounds=_LOAD_BOUNDS.get(section)))
+
+
+def _check_owned_sections(spec: DesignSpec) -> None:
+    """Parse the owned sections now, so a bad [tolerance]/[calibration]/[cad] value is
+    refused on load by every command, not only by the one that reads it."""
+    if "tolerance" in spec.sections:
+        from .analysis.tolerance import tolerance_spec
+
+        tolerance_spec(spec)
+    if "calibration" in spec.sections:
+        from .calibration.fit import calibration_config
+
+        calibration_config(spec)
+    if "cad" in spec.sections:
+        from .cad.params import mount_params_from_spec
+
+        mount_params_from_spec(spec)
 
 
 def design_from_dict(data: dict[str, Any], source: str = "<dict>") -> DesignSpec:
-    """Build and validate a :class:`DesignSpec` from a parsed TOML dict."""
+    """Build and validate a :class:`DesignSpec` from a parsed TOML dict.
+
+    Unknown top-level keys, sections and keys are refused with the nearest valid name;
+    values are type-checked strictly (no boolean for a number, no string for a boolean,
+    finite numbers, tuples of the right length) and bounded physically; the owned
+    sections (:data:`OWNED_SECTIONS`) are parsed by their modules.
+    """
+    from .validation import check_keys, check_value, safe_name, suggest
+
+    src = None if source == "<dict>" else source
+    if not isinstance(data, dict):
+        raise DesignFileError(f"{source}: a design must be a table, got {type(data).__name__}")
     data = dict(data)
     for req in ("name", "lidar", "layout"):
         if req not in data:
+            near = suggest(req, [k for k in data if k not in _TOP_KEYS + OWNED_SECTIONS])
             raise DesignFileError(f"{source}: missing required '{req}'"
-                                  + (" table" if req != "name" else " key"))
-    lidar = data.pop("lidar")
-    if not isinstance(lidar, dict) or "model" not in lidar:
+                                  + (" table" if req != "name" else " key")
+                                  + (f"; did you mean [{near}]?" if near else ""))
+    check_keys(data, _TOP_KEYS + OWNED_SECTIONS, "", src, sections=True)
+    name = safe_name(check_value(data.pop("name"), str, "name", src))
+    lidar = check_keys(data.pop("lidar"), ("model",), "lidar", src)
+    if "model" not in lidar:
         raise DesignFileError(f"{source}: [lidar] needs 'model'")
-    extra_lidar = sorted(set(lidar) - {"model"})
-    if extra_lidar:
-        raise DesignFileError(f"{source}: [lidar] has unknown key(s) {', '.join(extra_lidar)}; "
-                              "allowed: model")
-    kw: dict[str, Any] = {"name": data.pop("name"), "lidar": lidar["model"],
-                          "description": data.pop("description", ""),
-                          "reference": data.pop("reference", {})}
+    kw: dict[str, Any] = {"name": name, "lidar": check_value(lidar["model"], str, "lidar.model", src),
+                          "description": check_value(data.pop("description", ""), str,
+                                                     "description", src),
+                          "reference": check_value(data.pop("reference", {}), dict, "reference",
+                                                   src)}
     for sec, cls in _SECTION_TYPES.items():
         if sec in data:
-            try:
-                kw[sec] = _build(cls, data.pop(sec), sec)
-            except DesignFileError as exc:
-                raise DesignFileError(f"{source}: {exc}") from None
+            kw[sec] = _build(cls, data.pop(sec), sec, src)
     kw["sections"] = data
-    return DesignSpec(**kw)
+    spec = DesignSpec(**kw)
+    _check_owned_sections(spec)
+    return spec
 
 
 def load_design(path: str | Path) -> DesignSpec:
-    """Read a design TOML file; errors name the file and the offending field."""
+    """Read a design TOML file; errors name the file and the offending field.
+
+    The file must be a regular UTF-8 text file of sane size (a FIFO, a directory or a
+    binary file is refused, not read; :func:`nodlidar.validation.read_toml`).
+    """
+    from .errors import UnknownKeyError
+    from .validation import read_toml
+
     p = Path(path)
-    if not p.is_file():
-        raise DesignFileError(f"design file not found: {p}")
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise DesignFileError(f"{p}: malformed TOML: {exc}") from None
+    data = read_toml(p, "design", error=DesignFileError)
     try:
         return design_from_dict(data, source=str(p))
+    except UnknownKeyError:
+        raise
     except ParameterError as exc:
-        raise ParameterError(exc.field, exc.value, exc.allowed + f" (in {p})") from None
+        where = f" in {p}"
+        allowed = exc.allowed if exc.allowed.endswith(where) else exc.allowed + where
+        raise ParameterError(exc.field, exc.value, allowed) from None
 
 
 def design_to_toml(spec: DesignSpec) -> str:

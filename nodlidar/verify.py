@@ -106,6 +106,51 @@ class Verification:
             out[m.name] = int(np.count_nonzero(bad & (self.expected == i)))
         return out
 
+    @property
+    def bad(self) -> np.ndarray:
+        """Beams that hit the wrong mirror (or none) or whose path is blocked, ``(n_steps,) bool``."""
+        return self.wrong_mirror | (self.blocker != -1)
+
+    def unexpected_blocked(self) -> np.ndarray:
+        """:attr:`bad` outside the design's ``placement.shadowed_steps``, ``(n_steps,) bool``."""
+        ok = np.zeros(len(self.steps), bool)
+        for lo, hi in self.design.spec.placement.shadowed_steps:
+            ok |= (self.steps >= lo) & (self.steps <= hi)
+        return self.bad & ~ok
+
+    def describe_blocked(self, mask: np.ndarray | None = None) -> str:
+        """Which beams are bad and why, e.g. ``"L1 steps 616..624 blocked by L2"``.
+
+        Runs of consecutive steps with the same expected mirror and the same cause are
+        merged; ``mask`` (default :attr:`bad`) selects the beams.
+        """
+        mask = self.bad if mask is None else mask
+        names = [m.name for m in self.design.mirrors]
+
+        def who(i: int) -> str:
+            return "direct" if i < 0 else names[i]
+
+        def cause(i: int) -> str:
+            if self.blocker[i] == HOUSING:
+                return "reflected into the housing"
+            if self.blocker[i] >= 0:
+                return f"blocked by {who(int(self.blocker[i]))}"
+            return f"hit {who(int(self.hit[i]))} instead" if self.hit[i] >= 0 else "miss their mirror"
+
+        parts: list[str] = []
+        run: list = []
+        for i in np.nonzero(mask)[0]:
+            key = (who(int(self.expected[i])), cause(int(i)))
+            if run and run[0] == key and run[2] == self.steps[i] - 1:
+                run[2] = int(self.steps[i])
+                continue
+            if run:
+                parts.append(run)
+            run = [key, int(self.steps[i]), int(self.steps[i])]
+        if run:
+            parts.append(run)
+        return "; ".join(f"{k[0]} steps {a}..{b} {k[1]}" for k, a, b in parts)
+
     def mirror_errors(self, name: str) -> np.ndarray:
         """Bearing errors at D [rad] of one mirror's beams, ordered by step."""
         i = [m.name for m in self.design.mirrors].index(name)

@@ -41,15 +41,22 @@ def run(args) -> int:
     from pathlib import Path
 
     from ..designio import mirror_table, paper_comparison
+    from ..errors import InfeasibleDesignError
     from ..solver import solve
     from ..spec import design_to_toml, load_design
+    from ..verify import verify
 
     spec = load_design(args.design)
     if args.method:
         spec = spec.replace(**{"placement.method": args.method})
     other_method = "optimal" if spec.placement.method == "anchor" else "anchor"
     design = solve(spec)
-    alt = solve(spec.replace(**{"placement.method": other_method}))
+    try:
+        alt = solve(spec.replace(**{"placement.method": other_method}))
+        alt_mirrors, alt_refused = mirror_table(alt), None
+    except InfeasibleDesignError as exc:
+        # the alternative is for comparison only; its refusal must not hide the design
+        alt_mirrors, alt_refused = [], str(exc)
     out = {
         "name": spec.name,
         "lidar": spec.lidar,
@@ -59,8 +66,12 @@ def run(args) -> int:
         "direct_steps": [int(design.direct_steps[0]), int(design.direct_steps[-1])],
         "mirrors": mirror_table(design),
         "paper_comparison": paper_comparison(design),
-        "alternative": {"method": other_method, "mirrors": mirror_table(alt)},
+        "alternative": {"method": other_method, "mirrors": alt_mirrors},
     }
+    if alt_refused:
+        out["alternative"]["refused"] = alt_refused
+    # beams the file gives up (placement.shadowed_steps), described as the trace finds them
+    out["shadowed"] = verify(design).describe_blocked()
     if args.out:
         d = Path(args.out)
         d.mkdir(parents=True, exist_ok=True)
@@ -70,9 +81,11 @@ def run(args) -> int:
         json.dump(out, sys.stdout, indent=2)
         print()
         return 0
+    blocked = ("none blocked" if not out["shadowed"] else
+               f"shadowed as the file declares: {out['shadowed']}")
     print(f"{spec.name}: {spec.lidar}, D = {spec.layout.design_distance_m} m, "
           f"k = {spec.layout.windows}, placement = {spec.placement.method}; direct steps "
-          f"{out['direct_steps'][0]}..{out['direct_steps'][1]}; every beam ray-traced, none blocked")
+          f"{out['direct_steps'][0]}..{out['direct_steps'][1]}; every beam ray-traced, {blocked}")
     print(_fmt_table(out["mirrors"]))
     print("span = distance between the first and last beam's hit points (the paper's QZ); "
           "len = mirror patch incl. half-step margins;\nrms/max = bearing error against the "
@@ -83,7 +96,10 @@ def run(args) -> int:
             print(f"  {r['quantity']:14} paper {r['paper']:10.6g}  ours {r['ours']:10.6g}  "
                   f"diff {r['difference']:+.4g} ({r['relative'] * 100:+.2f} %)")
     print(f"\nside by side, placement = {other_method}:")
-    print(_fmt_table(out["alternative"]["mirrors"]))
+    if alt_refused:
+        print(f"  refused: {alt_refused}")
+    else:
+        print(_fmt_table(out["alternative"]["mirrors"]))
     if args.out:
         print(f"\nwrote {Path(args.out) / 'design.json'}")
     return 0
