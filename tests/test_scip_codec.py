@@ -1,8 +1,10 @@
-"""SCIP 2.0 codec: test vectors of ../shared/reference/scip2.md §1.10 and real captures."""
+"""SCIP 2.0 codec: test vectors of the SCIP reference (tests/data/scip2.md §1.10) and real
+captures (tests/data/urg04lx-captures, copied from ../shared/data; see tests/data/README.md)."""
 
 from __future__ import annotations
 
 import re
+import time
 import warnings
 from pathlib import Path
 
@@ -13,12 +15,12 @@ from nodlidar import scip
 from nodlidar.errors import DeviceError, ParameterError, ProtocolError
 from nodlidar.lidar import lidar_model
 
-CAPTURES = Path(__file__).resolve().parents[2] / "shared" / "data" / "urg04lx-captures"
+CAPTURES = Path(__file__).resolve().parent / "data" / "urg04lx-captures"
 
 
 def _capture(name: str) -> bytes:
     path = CAPTURES / f"capture-{name}-gd0044072501.bin"
-    assert path.exists(), f"real-device capture {path} is missing (../shared/data)"
+    assert path.exists(), f"real-device capture {path} is missing (see tests/data/README.md)"
     return path.read_bytes()
 
 
@@ -368,3 +370,203 @@ def test_status_meanings():
     assert "already off" in scip.status_meaning("TM", "03")
     err = scip.ScipStatusError("GD", "10")
     assert "10" in str(err) and "laser is off" in str(err)
+
+
+# --- issue 15: malformed input is a typed error, the framer is never poisoned -----------
+def _status_variant(raw: bytes, first: int) -> bytes:
+    """``raw`` with its status's first byte replaced (the sum is left as it was)."""
+    b = bytearray(raw)
+    i = raw.index(b"\n") + 1
+    b[i] = first
+    return bytes(b)
+
+
+@pytest.mark.parametrize("delta", [0x40, 0x80, 0xC0])
+def test_status_byte_that_keeps_the_sum_is_a_protocol_error(delta):
+    """'0' + 0x40/0x80/0xC0 keeps the status line's 6-bit sum: the codec must refuse it as
+    a ProtocolError (it raised UnicodeDecodeError for non-ASCII bytes), and the framer
+    must drop the frame and go on (it kept the bytes and stalled for good)."""
+    raw = _capture("a")
+    bad = _status_variant(raw, (ord("0") + delta) % 256)
+    assert scip.checksum(bad.split(b"\n")[1][:2]) == b"P"  # the sum still verifies
+    with pytest.raises(ProtocolError, match="status"):
+        scip.parse_reply(bad)
+    with pytest.raises(ProtocolError):
+        scip.decode_scan(bad)
+    framer = scip.ScipFramer()
+    assert framer.feed(bad) == []
+    assert framer.pending == 0 and framer.rejected == 1
+    assert framer.feed(raw) == [raw]  # the next message comes through
+    assert framer.pending == 0
+
+
+def test_status_9y_is_a_bad_frame_not_a_device_status():
+    """'9y' has the sum of '99' ('y' = '9' + 0x40): undocumented, so it is a corrupted
+    frame (ProtocolError, dropped by the framer), not a device error status."""
+    msg = scip.encode_scan_reply("MD0044072501000", "99", 5, np.full(682, 1000), 3)
+    bad = msg.replace(b"\n99b\n", b"\n9yb\n")
+    assert scip.checksum(b"9y") == scip.checksum(b"99")
+    with pytest.raises(ProtocolError, match="status"):
+        scip.decode_scan(bad)
+    assert scip.ScipFramer().feed(bad + msg) == [msg]
+
+
+def test_status_error_names_the_allowed_statuses():
+    r = scip.parse_reply(scip.encode_message("MD0044072501000", "99"))
+    with pytest.raises(scip.ScipStatusError) as ei:
+        scip.check_status(r, ("00",))
+    assert str(ei.value).endswith("allowed: '00'") and ei.value.allowed == ("00",)
+    with pytest.raises(scip.ScipStatusError, match=r"allowed: '00' or '02'$"):
+        scip.check_status(scip.parse_reply(b"BM\n01Q\n\n"), ("00", "02"))
+    assert str(scip.ScipStatusError("GD", "10")).endswith("allowed: '00' or '99'")
+
+
+def test_salvage_is_linear(monkeypatch):
+    """64 KB of repeated 'GD' (took 10 s: one regex and one parse per position) and 64 KB
+    of one-line 'GD' echoes: parse_reply runs a bounded number of times, not once per
+    position or line, and a real message after the junk still comes through."""
+    calls = []
+    real = scip.parse_reply
+    monkeypatch.setattr(scip, "parse_reply", lambda m: calls.append(len(m)) or real(m))
+    raw = _capture("a")
+    ack = b"GD0044072501\n00P\n\n"
+    for junk, first in ((b"GD" * 32768, []), (b"GD\n" * 21845, []),
+                        (b"GD0044072501\n" * 5000, []),
+                        # only the last echo + status is followed by LF LF: one valid ack
+                        (b"GD0044072501\n00P\n" * 3500, [ack])):
+        calls.clear()
+        framer = scip.ScipFramer()
+        t0 = time.perf_counter()
+        assert framer.feed(junk + b"\n\n" + raw) == first + [raw]
+        dt = time.perf_counter() - t0
+        assert len(calls) <= 3, (junk[:20], len(calls))
+        assert framer.pending == 0
+        # ~30 ms here unloaded (10 s before); 1 s leaves room for a loaded machine
+        assert dt < 1.0, dt
+
+
+def test_framer_buffer_bounded_and_search_incremental():
+    framer = scip.ScipFramer(max_buffer=4096)
+    for _ in range(1000):  # 64 KB without a terminator, in small pieces
+        framer.feed(b"GD0044072501;" + b"x" * 51)
+        assert framer.pending <= 4096
+    assert framer.discarded_bytes == 64_000 - framer.pending
+    raw = _capture("b")
+    assert framer.feed(b"\n\n" + raw) == [raw]
+    with pytest.raises(ParameterError, match="max_buffer"):
+        scip.ScipFramer(max_buffer=10)
+
+
+PP_FIELDS = {"DMIN": "20", "DMAX": "5600", "ARES": "1024", "AMIN": "44", "AMAX": "725",
+             "AFRT": "384", "SCAN": "600"}
+
+
+def _pp_with(**values: str) -> bytes:
+    items = [("MODL", "URG-04LX(Hokuyo Automatic Co.,Ltd.)")]
+    items += [(k, values.get(k, v)) for k, v in PP_FIELDS.items()]
+    return scip.encode_info_reply("PP", items)
+
+
+@pytest.mark.parametrize(("key", "value", "named", "allowed"), [
+    ("DMIN", "6000", "DMIN = 6000", "< DMAX (5600 mm)"),
+    ("DMAX", "20", "DMIN = 20", "< DMAX (20 mm)"), ("DMIN", "0", "DMIN = 0", ">= 1"),
+    ("SCAN", "0", "SCAN = 0", "1..60000"), ("ARES", "0", "ARES = 0", "1..9999"),
+    ("AMIN", "1024", "AMIN = 1024", "0..1023"), ("AMAX", "1024", "AMAX = 1024", "44..1023"),
+    ("AMAX", "40", "AMAX = 40", "44..1023"), ("AFRT", "1000", "AFRT = 1000", "44..725"),
+    ("AFRT", "10", "AFRT = 10", "44..725"), ("DMAX", "300000", "DMAX = 300000", "262143"),
+    ("SCAN", "-5", "SCAN = -5", "1..60000")])
+def test_pp_reply_validated(key, value, named, allowed):
+    """Each field of an impossible PP reply is refused by name (a ProtocolError: the
+    driver asks again), instead of ZeroDivisionError or all-NaN scans later."""
+    assert scip.parse_params(_pp_with()).scan_rpm == 600  # the good reply parses
+    with pytest.raises(ProtocolError, match=rf"scip\.PP\.{named} .*{re.escape(allowed)}"):
+        scip.parse_params(_pp_with(**{key: value}))
+
+
+# --- the plausibility filter -------------------------------------------------------------
+def _double_corruption(raw: bytes, index: int, char: int, d: int) -> bytes:
+    """Change character ``char`` (0 high .. 2 low) of value ``index`` by +d and another
+    character of the same data line by -d: the line's 6-bit sum is unchanged."""
+    lines = raw.split(b"\n")
+    pos = 3 * index + char  # in the joined data block
+    line_no, col = divmod(pos, 64)
+    li = 3 + line_no  # echo, status, timestamp, then data lines
+    offset = sum(len(x) + 1 for x in lines[:li])
+    line = bytearray(lines[li])
+    for other in range(len(line) - 1):
+        if other // 3 != col // 3 and 0x30 <= line[other] - d <= 0x6F:
+            break
+    else:
+        raise AssertionError("no partner character")
+    line[col] += d
+    line[other] -= d
+    assert scip.checksum(bytes(line[:-1])) == bytes(line[-1:])  # still verifies
+    return raw[:offset] + bytes(line) + raw[offset + len(line):]
+
+
+def test_plausibility_on_real_captures():
+    """Real URG-04LX scans (no previous scan): 1 of 892 checked values flagged - a real
+    154 mm dip at step 63 of capture a (3505, 3351, 3505 mm), found by hand in the
+    data; nothing in capture b."""
+    f = scip.RangePlausibility()
+    flagged, checked = {}, 0
+    for name in "ab":
+        r = scip.decode_scan(_capture(name)).ranges_mm
+        fl = f.flag(r, dmin_mm=20, dmax_mm=5600)
+        flagged[name] = (44 + np.flatnonzero(fl)).tolist()
+        v = r >= 20
+        checked += int((v[:-2] & v[1:-1] & v[2:]).sum())
+        assert not fl[~v].any()  # error codes are never flagged
+        # the previous scan confirming the values clears every flag
+        assert not f.flag(r, dmin_mm=20, dmax_mm=5600, previous_mm=r).any()
+    assert flagged == {"a": [63], "b": []} and checked == 892
+
+
+@pytest.mark.parametrize(("index", "char", "d"), [
+    (200, 1, 11), (200, 1, -5), (300, 0, 1), (450, 1, 3)])
+def test_plausibility_flags_checksum_passing_corruption(index, char, d):
+    """A corruption the checksum lets through (the issue's 529 -> 1233 mm kind: the middle
+    character +11) changes a value by 64 * d mm; the filter flags it (the partner
+    character's value changes by less than 64 mm and is not necessarily flagged)."""
+    raw = _capture("a")
+    ref = scip.decode_scan(raw).ranges_mm
+    assert ref[index - 1: index + 2].min() >= 20  # inside a valid run
+    bad = scip.decode_scan(_double_corruption(raw, index, char, d)).ranges_mm
+    assert abs(int(bad[index]) - int(ref[index])) == 64 ** (2 - char) * abs(d)
+    fl = scip.RangePlausibility().flag(bad, dmin_mm=20, dmax_mm=5600, previous_mm=ref)
+    assert fl[index]
+    assert not fl[np.flatnonzero(bad == ref)].any()  # unchanged values stay unflagged
+
+
+def test_plausibility_false_positive_rate_on_clean_simulated_scans():
+    """Clean simulated nodding scans (room scene, URG noise on, the paper design): with
+    the previous scan the filter flags 19 of 67 517 values (2.8e-4, measured); the bound
+    is the budget the filter documents (5e-4)."""
+    from nodlidar.paper import PAPER_DESIGN
+    from nodlidar.sim.raycast import SceneSimulator
+    from nodlidar.sim.scip_emulator import quantise_ranges
+    from nodlidar.solver import solve
+    from nodlidar.spec import load_design
+
+    design = solve(load_design(PAPER_DESIGN))
+    scans = SceneSimulator(design, "room").scans(100, seed=1)
+    mm = [quantise_ranges(s.range_m, 20, 5600, 3) for s in scans]
+    f = scip.RangePlausibility()
+    flagged = checked = 0
+    for k in range(1, len(mm)):
+        flagged += int(f.flag(mm[k], dmin_mm=20, dmax_mm=5600, previous_mm=mm[k - 1]).sum())
+        checked += int((mm[k] >= 20).sum())
+    assert checked > 60_000
+    assert flagged / checked < 5e-4, (flagged, checked)
+
+
+def test_plausibility_parameters_and_physics():
+    with pytest.raises(ParameterError, match="rel_tol"):
+        scip.RangePlausibility(rel_tol=-1)
+    with pytest.raises(ParameterError, match="abs_tol_mm"):
+        scip.RangePlausibility(abs_tol_mm=True)
+    f = scip.RangePlausibility()
+    r = np.array([1000, 5700, 1000, 7, 1000])
+    assert f.flag(r, dmin_mm=20, dmax_mm=5600).tolist() == [False, True, False, False, False]
+    with pytest.raises(ParameterError, match="previous_mm"):
+        f.flag(r, dmin_mm=20, dmax_mm=5600, previous_mm=r[:3])
