@@ -12,30 +12,92 @@ import argparse
 import importlib
 import pkgutil
 import sys
+import textwrap
 
-from . import commands
+from . import __version__, commands
+from .commands._output import configure, paragraphs, plain
 from .errors import NodlidarError
 
-EXIT_USAGE = 2  # the user can fix the input
+EXIT_OK = 0
 EXIT_OS = 1  # the system refused (device missing, port busy, disk full)
+EXIT_USAGE = 2  # the user can fix the input (also: no command given)
+EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT)
+
+#: The exit statuses, as ``nodlidar --help`` and docs/cli.md list them.
+EXIT_CODES = (
+    (EXIT_OK, "success"),
+    (EXIT_OS, "the system refused: a device or port that is missing or busy, a full disk"),
+    (EXIT_USAGE, "bad input the user can fix (option, file, value); also no command given "
+                 "(the help is printed)"),
+    (EXIT_INTERRUPTED, "interrupted (Ctrl-C)"),
+)
+
+_EPILOG = ("-q and -v go before or after the command (nodlidar -q scan). Every command has "
+           "--help.\n\nexit status:\n" + "\n".join(f"- {c}: {t}" for c, t in EXIT_CODES))
+
+
+class _Formatter(argparse.HelpFormatter):
+    """Descriptions and epilogs: plain text (no reST markup), paragraphs and bullet items
+    kept, each refilled to the terminal width."""
+
+    def _fill_text(self, text, width, indent):
+        out = []
+        for items in paragraphs(plain(text)):
+            for item in items:
+                hang = "  " if item[:2] in ("- ", "* ") else ""   # bullet text hangs under itself
+                out.append(textwrap.fill(item, width, initial_indent=indent,
+                                         subsequent_indent=indent + hang))
+            out.append("")
+        return "\n".join(out).rstrip("\n")
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse, but usage errors are one line (no usage dump) and exit 2."""
+    """argparse, but usage errors are one line (no usage dump) and exit 2; help is plain."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", _Formatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> None:  # noqa: D401
         self.exit(EXIT_USAGE, f"{self.prog}: {message}\n")
 
 
+def _add_global_flags(p: argparse.ArgumentParser, default) -> None:
+    g = p.add_argument_group("global options")
+    g.add_argument("-q", "--quiet", action="count", default=default,
+                   help="no status lines or progress bars (stderr); results and errors only")
+    g.add_argument("-v", "--verbose", action="count", default=default,
+                   help="more detail on stderr (debug log)")
+
+
+def _plain_help(p: argparse.ArgumentParser) -> None:
+    """Strip reST markup from a command's description and option help texts."""
+    p.description = plain(p.description)
+    p.epilog = plain(p.epilog)
+    for a in p._actions:
+        if isinstance(a.help, str):
+            a.help = plain(a.help)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="nodlidar", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="nodlidar", epilog=_EPILOG,
+                     description="Design workbench and runtime for a nodding 2D lidar with "
+                                 "reconfigurable mirrors.")
+    parser.add_argument("--version", action="version", version=f"nodlidar {__version__}")
+    _add_global_flags(parser, 0)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    sub.required = True
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
             continue
         module = importlib.import_module(f"{commands.__name__}.{info.name}")
         module.register(sub)
+    for p in sub.choices.values():
+        _plain_help(p)
+        # also after the command (nodlidar scan -q); SUPPRESS keeps the global value
+        if not any(o in p._option_string_actions for o in ("-q", "--quiet", "-v", "--verbose")):
+            _add_global_flags(p, argparse.SUPPRESS)
+    for a in sub._choices_actions:   # the one-line help in the command list
+        a.help = plain(a.help)
     return parser
 
 
@@ -43,6 +105,10 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status (testable in process)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command is None:   # bare `nodlidar`: the help, on stdout, and the usage status
+        parser.print_help()
+        return EXIT_USAGE
+    configure(int(args.verbose or 0) - int(args.quiet or 0))
     try:
         return int(args.func(args) or 0)
     except NodlidarError as exc:
@@ -58,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_OS
     except KeyboardInterrupt:
         print(f"nodlidar {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":  # pragma: no cover

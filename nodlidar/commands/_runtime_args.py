@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import sys
 
 import numpy as np
 
@@ -45,7 +44,9 @@ def add_device_args(p, *, design: bool = True, scene: str | None = None) -> None
 
 
 def _stderr(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+    from ._output import status  # stderr, hidden by -q
+
+    status(msg)
 
 
 def session_from_args(args, **kw):

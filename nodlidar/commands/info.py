@@ -16,8 +16,10 @@ def register(sub) -> None:
                        description=__doc__)
     add_device_args(p, design=False)
     p.add_argument("--design", metavar="TOML", default=None,
-                   help="design of the simulated sensor (default: design/urg04lx-paper.toml)")
-    p.add_argument("--json", action="store_true", help="print JSON")
+                   help="design of the simulated sensor (default: the paper's build, "
+                        "design/urg04lx-paper.toml)")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object (lidar, params, state, servos, simulated)")
     p.set_defaults(func=run)
 
 
@@ -70,4 +72,12 @@ def _plain(obj) -> dict:
 
 
 def _jsonable(x):
-    return x if isinstance(x, (int, float, str, bool)) or x is None else str(x)
+    """A JSON value: mappings stay objects (e.g. ``extra``, the unknown fields), sequences
+    arrays; anything else its text."""
+    if isinstance(x, (int, float, str, bool)) or x is None:
+        return x
+    if isinstance(x, dict) or hasattr(x, "items"):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    return str(x)

@@ -20,6 +20,8 @@ def register(sub) -> None:
                    help="0: in process; N: a local Dask cluster of N worker processes "
                         "(default: in process up to 20000 samples)")
     p.add_argument("--scheduler", metavar="ADDR", help="run the Monte Carlo on this Dask scheduler")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object: the files written and the report's summary")
     p.set_defaults(func=run)
 
 
@@ -27,12 +29,14 @@ def tqdm_progress(desc: str):
     """A ``progress(done, total)`` callback drawing a tqdm bar (CLI only), and its closer."""
     from tqdm import tqdm
 
+    from ._output import progress_disable
+
     bar = None
 
     def progress(done: int, total: int) -> None:
         nonlocal bar
         if bar is None:
-            bar = tqdm(total=total, desc=desc, unit="sample", disable=None)
+            bar = tqdm(total=total, desc=desc, unit="sample", disable=progress_disable())
         bar.update(done - bar.n)
 
     def close() -> None:
@@ -59,6 +63,14 @@ def run(args) -> int:
     finally:
         close()
     paths = write_report(data, args.out or default_out_dir(spec))
+    if args.json:
+        import json
+
+        summary = json.loads(paths.json.read_text())
+        print(json.dumps({"html": str(paths.html), "markdown": str(paths.markdown),
+                          "json": str(paths.json), "toml": str(paths.toml),
+                          "figures": [str(f) for f in paths.figures], "summary": summary}, indent=2))
+        return 0
     print(f"wrote {paths.html}")
     print(f"wrote {paths.markdown} ({len(paths.figures)} figures in {paths.figures[0].parent})")
     print(f"wrote {paths.json}")

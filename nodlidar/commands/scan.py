@@ -7,6 +7,9 @@ assembles every beam with its own time and nod angle (mirrors deployed, or lifte
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 from ._runtime_args import add_device_args, add_frame_args, check_out, frame_kwargs, session_from_args
 
 
@@ -18,6 +21,8 @@ def register(sub) -> None:
                    help="output .ply or .pcd (default scan.ply)")
     p.add_argument("--ascii", action="store_true", help="ASCII instead of binary file")
     p.add_argument("--lift", action="store_true", help="lift the mirrors (direct beams only)")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object (points, scans, nod range, frame, file, ...)")
     p.set_defaults(func=run)
 
 
@@ -31,11 +36,22 @@ def run(args) -> int:
         cloud = cap.assemble(s.model, **kw)
     path = write_cloud(args.out, cloud, binary=not args.ascii)
     m = cloud.meta
-    dropped = ", ".join(f"{k.replace('_', ' ')} {m[k]}" for k in ("error_codes", "no_nod",
-                                                                  "mirror_moving", "blocked") if m.get(k))
-    print(f"{len(cloud)} points from {len(cap.scans)} scans (nod {s.nod_profile().lower_rad:+.3f}.."
-          f"{s.nod_profile().upper_rad:+.3f} rad, mirrors {'lifted' if args.lift else 'deployed'}, "
+    nod = s.nod_profile()
+    dropped = {k: int(m[k]) for k in ("error_codes", "no_nod", "mirror_moving", "blocked") if m.get(k)}
+    if args.json:
+        print(json.dumps({
+            "path": str(path), "format": Path(path).suffix.lstrip(".").lower(),
+            "binary": not args.ascii, "points": len(cloud), "scans": len(cap.scans),
+            "nod_lower_rad": nod.lower_rad, "nod_upper_rad": nod.upper_rad,
+            "mirrors": "lifted" if args.lift else "deployed", "frame": cloud.frame,
+            "design": cloud.design_name, "design_hash": cloud.design_hash,
+            "calibration_id": cloud.calibration_id, "simulated": args.port is None,
+            "reflected_points": int((cloud.mirror >= 0).sum()), "dropped": dropped}, indent=2))
+        return 0
+    dropped_txt = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in dropped.items())
+    print(f"{len(cloud)} points from {len(cap.scans)} scans (nod {nod.lower_rad:+.3f}.."
+          f"{nod.upper_rad:+.3f} rad, mirrors {'lifted' if args.lift else 'deployed'}, "
           f"frame {cloud.frame}, calibration {cloud.calibration_id})"
-          + (f"; dropped: {dropped}" if dropped else ""))
+          + (f"; dropped: {dropped_txt}" if dropped_txt else ""))
     print(f"wrote {path}")
     return 0
