@@ -33,8 +33,29 @@ class ParameterError(NodlidarError, ValueError):
         super().__init__(f"{field} = {value!r} is invalid; allowed: {allowed}")
 
 
-class DesignFileError(NodlidarError, ValueError):
+class InputFileError(NodlidarError, ValueError):
+    """An input file cannot be read as what it should be: missing, not a regular file (a
+    FIFO, a directory), too large, not UTF-8 text, or malformed TOML. The message names
+    the file."""
+
+
+class DesignFileError(InputFileError):
     """A design/calibration file is missing, malformed or incomplete."""
+
+
+class UnknownKeyError(DesignFileError, ParameterError):
+    """A TOML file has a section or key nobody reads (usually a typo).
+
+    The message names the file and suggests the nearest valid name, e.g. ``unknown
+    section [tolerence] in x.toml; did you mean [tolerance]?``. It is a
+    :class:`ParameterError` too (``field`` is the dotted name, ``allowed`` the valid names).
+    """
+
+    def __init__(self, message: str, field: str, value: Any, allowed: str):
+        self.field = field
+        self.value = value
+        self.allowed = allowed
+        Exception.__init__(self, message)
 
 
 class InfeasibleDesignError(NodlidarError):

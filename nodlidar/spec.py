@@ -577,8 +577,13 @@ def load_design(path: str | Path) -> DesignSpec:
     data = read_toml(p, "design", error=DesignFileError)
     try:
         return design_from_dict(data, source=str(p))
-    except UnknownKeyError:
-        raise
+    except UnknownKeyError as exc:
+        if str(p) in str(exc):
+            raise
+        # an owned section's parser does not know the file: say where, before the hint
+        head, sep, hint = str(exc).partition(";")
+        raise UnknownKeyError(f"{head} in {p}{sep}{hint}", exc.field, exc.value,
+                              exc.allowed) from None
     except ParameterError as exc:
         where = f" in {p}"
         allowed = exc.allowed if exc.allowed.endswith(where) else exc.allowed + where

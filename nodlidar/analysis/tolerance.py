@@ -71,6 +71,7 @@ from ..geometry import (
     rot_z,
     wrap_angle,
 )
+from ..validation import check_keys
 
 if TYPE_CHECKING:
     from ..solver import Design
@@ -117,12 +118,8 @@ def _nonneg(table: dict, key: str, where: str, default: float) -> float:
 
 
 def _unknown(table: Any, allowed: set[str], where: str) -> None:
-    if not isinstance(table, dict):
-        raise ParameterError(where, table, "a table")
-    extra = sorted(set(table) - allowed)
-    if extra:
-        raise ParameterError(f"{where}.{extra[0]}", table[extra[0]],
-                             f"one of the keys {', '.join(sorted(allowed))}")
+    """Refuse a non-table or unknown keys, naming the nearest valid key."""
+    check_keys(table, allowed, where)
 
 
 @dataclass(frozen=True)
