@@ -1,12 +1,19 @@
-"""``nodlidar record --out DIR``: record a nodding capture to a ROS 2 bag (sqlite3).
+"""``nodlidar record --out DIR``: record a nodding capture to a ROS 2 bag (MCAP by default,
+``--storage sqlite3`` for the older format).
 
-Topics: the raw SCIP frames, sensor_msgs/LaserScan, sensor_msgs/JointState (nod and mirror
-servo samples) and the design/calibration (so ``nodlidar replay`` rebuilds the same
-BeamModels). Every scan is committed as it arrives: a recording killed (even with SIGKILL)
-keeps every scan before the one in flight; ``nodlidar replay`` repairs such a bag.
+Topics: the raw SCIP frames, sensor_msgs/LaserScan (frame ``laser``), a PointCloud2 of each
+scan's assembled points (frame ``nodlidar_base``), /tf (the nod joint at every nod sample,
+the mirror joints at every lift sample), /tf_static, a latched /robot_description (URDF of
+the head), sensor_msgs/JointState (servo samples) and the latched design/calibration (so
+``nodlidar replay`` rebuilds the same BeamModels). Stamps are epoch time. Every scan is
+committed as it arrives: a recording killed (even with SIGKILL) keeps every scan before
+the one in flight; ``nodlidar replay`` reads such a bag (through a repaired copy). A write
+error (disk full) is one line and exit 1; the scans committed before are kept.
 """
 
 from __future__ import annotations
+
+import json
 
 from ..errors import ParameterError
 from ._runtime_args import add_device_args, add_frame_args, check_out, frame_kwargs, session_from_args
@@ -22,16 +29,22 @@ def register(sub) -> None:
     g.add_argument("--seconds", type=float, default=None, metavar="S",
                    help="stop after S seconds (session clock; default 10 s if no --scans)")
     p.add_argument("--lift", action="store_true", help="lift the mirrors while recording")
+    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
+                   help="bag storage (default mcap, as ROS 2 records since Iron)")
     p.add_argument("--cloud", default=None, metavar="FILE",
                    help="also assemble the recording live and write it (.ply/.pcd)")
+    p.add_argument("--json", action="store_true",
+                   help="print a JSON summary (bag, storage, scans, samples, points...)")
     add_frame_args(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    import inspect
+    import sys
     from pathlib import Path
 
-    from ..runtime.bag import BagRecorder
+    from ..runtime.bag import BagRecorder, BagWriteError
     from ..runtime.cloud import write_cloud
     from ..runtime.session import record_capture
 
@@ -51,17 +64,43 @@ def run(args) -> int:
             return len(scans) >= args.scans
         return scans[-1].stamp_s - scans[0].stamp_s >= seconds
 
-    with session_from_args(args) as s:
-        cal_toml = s.calibration_path.read_text() if s.calibration_path else None
-        rec = BagRecorder(args.out, s.design_path.read_text(), calibration_toml=cal_toml,
-                          lift_left=s.lift_left, lift_right=s.lift_right,
-                          extra={"dmin_mm": int(s.urg.params.dmin_mm),
-                                 "simulated": s.simulated,
-                                 "clock_offset_s": s.urg.clock_sync.offset_s})
-        with rec:
-            cap = record_capture(s, rec, stop, lift=args.lift)
-        print(f"recorded {rec.scans} scans and {rec.samples} servo samples to {args.out}")
-        if args.cloud:
-            cloud = cap.assemble(s.model, **kw)
-            print(f"{len(cloud)} points -> {write_cloud(args.cloud, cloud)}")
+    # the session's record_capture streams the live cloud itself when it can (bounded
+    # memory); an older one returns the capture to assemble here
+    streams = "cloud" in inspect.signature(record_capture).parameters
+    n_cloud = None
+    try:
+        with session_from_args(args) as s:
+            cal_toml = s.calibration_path.read_text() if s.calibration_path else None
+            rec = BagRecorder(args.out, s.design_path.read_text(), calibration_toml=cal_toml,
+                              lift_left=s.lift_left, lift_right=s.lift_right,
+                              storage=args.storage, clock=s.time_source,
+                              extra={"dmin_mm": int(s.urg.params.dmin_mm),
+                                     "simulated": s.simulated,
+                                     "clock_offset_s": s.urg.clock_sync.offset_s})
+            with rec:
+                if streams and args.cloud:
+                    res = record_capture(s, rec, stop, lift=args.lift, cloud=args.cloud,
+                                         assemble_kw=kw)
+                    n_cloud = res.cloud_points
+                else:
+                    cap = record_capture(s, rec, stop, lift=args.lift)
+            if not args.json:
+                print(f"recorded {rec.scans} scans and {rec.samples} servo samples to {args.out}")
+            if args.cloud and n_cloud is None:
+                cloud = cap.assemble(s.model, **kw)
+                write_cloud(args.cloud, cloud)
+                n_cloud = len(cloud)
+            if args.cloud and not args.json:
+                print(f"{n_cloud} points -> {args.cloud}")
+    except BagWriteError as exc:
+        # the disk (or the database) refused: the system's words, exit 1 like any OSError
+        print(f"nodlidar record: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps({
+            "bag": str(args.out), "storage": rec.storage, "format": rec.header["format"],
+            "scans": rec.scans, "servo_samples": rec.samples,
+            "point_clouds": rec.clouds_written, "bag_points": rec.points,
+            "epoch_offset_ns": rec.epoch_offset_ns, "cloud": args.cloud,
+            "cloud_points": n_cloud}, indent=2))
     return 0

@@ -61,6 +61,7 @@ from nodlidar.errors import DeviceError, ParameterError, ProtocolError, require
 
 __all__ = [
     "NOD_ID",
+    "BusLineError",
     "MIRROR_LEFT_ID",
     "MIRROR_RIGHT_ID",
     "PingInfo",
@@ -80,6 +81,20 @@ __all__ = [
 NOD_ID = 1
 MIRROR_LEFT_ID = 2
 MIRROR_RIGHT_ID = 3
+
+try:  # pyserial's tty calls raise termios.error (not an OSError) on a vanished pty
+    from termios import error as _TermiosError
+except ImportError:  # pragma: no cover - Windows
+    class _TermiosError(Exception):  # type: ignore[no-redef]
+        pass
+
+_LINE_ERRORS = (serial.SerialException, OSError, _TermiosError)
+
+
+class BusLineError(DeviceError):
+    """The servo bus's line itself failed (port vanished, closed, I/O error): retrying
+    will not help."""
+
 
 _MIN_ANGLE = -math.pi
 _MAX_ANGLE = (4095 - 2048) * RAD_PER_TICK
@@ -210,14 +225,16 @@ class DynamixelBus:
         self.close()
 
     # -- transactions -------------------------------------------------------------
-    def _receive(self, deadline: float, want: int | None) -> list[StatusPacket]:
-        """Read status packets until ``want`` arrived (None: until the deadline)."""
+    def _receive(self, deadline: float, want: int | None,
+                 accept: Callable[[StatusPacket], bool] | None = None) -> list[StatusPacket]:
+        """Read status packets until ``want`` arrived (None: until the deadline); packets
+        ``accept`` refuses (a late reply to an earlier attempt) are dropped."""
         ser = self._ser
         assert ser is not None
         got: list[StatusPacket] = []
         while want is None or len(got) < want:
             for pkt in self._parser.packets(skip_bad=False):
-                if isinstance(pkt, StatusPacket):
+                if isinstance(pkt, StatusPacket) and (accept is None or accept(pkt)):
                     got.append(pkt)
             if want is not None and len(got) >= want:
                 break
@@ -229,7 +246,8 @@ class DynamixelBus:
         return got
 
     def transact(
-        self, packet: InstructionPacket, expect: int | None = 1
+        self, packet: InstructionPacket, expect: int | None = 1,
+        accept: Callable[[StatusPacket], bool] | None = None,
     ) -> tuple[list[StatusPacket], float]:
         """Send one instruction and collect its replies.
 
@@ -240,6 +258,9 @@ class DynamixelBus:
         expect : int or None
             Number of status packets to wait for (0: none, e.g. broadcast writes;
             None: everything until the timeout, e.g. broadcast ping).
+        accept : callable, optional
+            Which status packets answer this instruction; others (a late reply to an
+            earlier attempt that timed out) are dropped.
 
         Returns
         -------
@@ -257,7 +278,7 @@ class DynamixelBus:
         last: Exception | None = None
         with self._lock:
             if self._ser is None:
-                raise DeviceError(f"bus.url = {self.url!r} is not open; call open() first")
+                raise BusLineError(f"bus.url = {self.url!r} is not open; call open() first")
             for _ in range(self.retries + 1):
                 try:
                     self._ser.reset_input_buffer()
@@ -266,7 +287,7 @@ class DynamixelBus:
                     self._ser.write(frame)
                     if expect == 0:
                         return [], t0
-                    got = self._receive(time.monotonic() + self.timeout_s, expect)
+                    got = self._receive(time.monotonic() + self.timeout_s, expect, accept)
                     t1 = self.time_source()
                 except CrcError as e:
                     last = e
@@ -274,10 +295,15 @@ class DynamixelBus:
                 except ProtocolError as e:  # pragma: no cover - defensive
                     last = e
                     continue
-                except (serial.SerialException, OSError) as e:
-                    raise DeviceError(f"bus.url = {self.url!r} failed during {what}: {e}") from e
-                if expect is None or len(got) >= expect:
+                except _LINE_ERRORS as e:
+                    raise BusLineError(f"bus.url = {self.url!r} failed during {what}: "
+                                       f"{e or type(e).__name__}") from e
+                if expect is None:
                     return got, 0.5 * (t0 + t1)
+                if len(got) >= expect:
+                    # a late reply to an earlier (timed-out) attempt reaches the line
+                    # before this one's: the device answers in order, so ours are last
+                    return got[-expect:], 0.5 * (t0 + t1)
                 last = None
             reason = f" ({last})" if last else ""
             raise DeviceError(
@@ -296,7 +322,7 @@ class DynamixelBus:
     def ping(self, servo_id: int) -> PingInfo:
         """PING one servo; raises :class:`DeviceError` if it does not answer."""
         _check_id(servo_id)
-        (st,), _ = self.transact(ping_packet(servo_id))
+        (st,), _ = self.transact(ping_packet(servo_id), accept=_reply_of(servo_id, 3))
         self._check(st, servo_id, "PING")
         if len(st.params) < 3:
             raise DeviceError(f"servo {servo_id}: PING reply has {len(st.params)} params, not 3")
@@ -332,7 +358,8 @@ class DynamixelBus:
     def read_bytes(self, servo_id: int, address: int, length: int) -> tuple[bytes, float]:
         """READ raw bytes; return them and the transaction time [s]."""
         _check_id(servo_id)
-        (st,), t = self.transact(read_packet(servo_id, address, length))
+        (st,), t = self.transact(read_packet(servo_id, address, length),
+                                 accept=_reply_of(servo_id, length))
         self._check(st, servo_id, f"READ {length} B @ {address}")
         if len(st.params) != length:
             raise DeviceError(
@@ -346,7 +373,8 @@ class DynamixelBus:
             self.transact(write_packet(servo_id, address, data), expect=0)
             return
         _check_id(servo_id)
-        (st,), _ = self.transact(write_packet(servo_id, address, data))
+        (st,), _ = self.transact(write_packet(servo_id, address, data),
+                                 accept=_reply_of(servo_id, 0))
         self._check(st, servo_id, f"WRITE {data.hex(' ')} @ {address}")
 
     def read(self, servo_id: int, name: str) -> int:
@@ -454,6 +482,12 @@ class DynamixelBus:
             velocity_rad_s=velocity_raw_to_rad_s(field("present_velocity")),
             angle_rad=ticks_to_rad(field("present_position")),
         )
+
+
+def _reply_of(servo_id: int, n_params: int) -> Callable[[StatusPacket], bool]:
+    """Accepts the status packet of ``servo_id`` with ``n_params`` parameters (or an error,
+    which carries none): anything else on the line is a late reply to an earlier attempt."""
+    return lambda st: st.id == servo_id and (len(st.params) == n_params or bool(st.error & 0x7F))
 
 
 def _check_id(servo_id: int) -> None:
@@ -588,6 +622,8 @@ class NodController:
         self.turns: deque[tuple[float, float]] = deque(maxlen=10_000)
         """(time [s], new goal [rad]) each time the goal is flipped."""
         self.error: BaseException | None = None
+        self.last_state: ServoState | None = None
+        """The servo state the controller read last (tests on a manual clock wait on it)."""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._cond = threading.Condition()
@@ -650,6 +686,7 @@ class NodController:
         deadline = t_cmd + nominal_s + self.stall_timeout_s
         while not self._stop.is_set():
             st = bus.read_state(sid)
+            self.last_state = st
             if abs(st.angle_rad - goal) <= self.tolerance_rad:
                 return True
             if st.host_time_s > deadline:
@@ -855,53 +892,138 @@ class Samples(NamedTuple):
 
 
 class SampleBuffer:
-    """Thread-safe ring buffer of the newest ``capacity`` samples.
+    """Thread-safe buffer of timestamped samples (oldest first).
 
     Parameters
     ----------
-    capacity : int
-        Samples kept; older ones are overwritten (``dropped`` counts them).
+    capacity : int or None
+        ``None`` (default): every sample is kept until :meth:`prune` drops it - nothing
+        is lost, and memory stays bounded when the consumer prunes behind what it has
+        used (the live capture prunes behind the oldest scan not yet assembled). An int:
+        a ring of the newest ``capacity`` samples; older ones are overwritten
+        (``dropped`` counts them).
     """
 
-    def __init__(self, capacity: int = 65536):
-        require(capacity >= 2, "samples.capacity", capacity, ">= 2")
-        self.capacity = int(capacity)
-        self._t = np.empty(capacity)
-        self._tick = np.empty(capacity, dtype=np.int64)
-        self._a = np.empty(capacity)
+    def __init__(self, capacity: int | None = None):
+        if capacity is not None:
+            require(capacity >= 2, "samples.capacity", capacity, ">= 2 (or None: unbounded)")
+        self.capacity = None if capacity is None else int(capacity)
+        size = self.capacity or 1024
+        self._t = np.empty(size)
+        self._tick = np.empty(size, dtype=np.int64)
+        self._a = np.empty(size)
+        self._lo = 0  # unbounded mode: first live sample in the arrays
+        self._hi = 0  # unbounded mode: one past the last
         self._n = 0  # total appended
+        self._pruned = 0
         self._lock = threading.Lock()
+
+    @property
+    def total(self) -> int:
+        """Samples appended so far (kept, pruned or dropped)."""
+        return self._n
+
+    @property
+    def pruned(self) -> int:
+        """Samples removed by :meth:`prune` so far."""
+        return self._pruned
 
     def append(self, host_time_s: float, tick_ms: int, angle_rad: float) -> None:
         """Add one sample."""
         with self._lock:
-            i = self._n % self.capacity
+            if self.capacity is not None:
+                i = self._n % self.capacity
+            else:
+                if self._hi == len(self._t):
+                    self._make_room()
+                i = self._hi
+                self._hi += 1
             self._t[i], self._tick[i], self._a[i] = host_time_s, tick_ms, angle_rad
             self._n += 1
 
+    def _make_room(self) -> None:
+        # move the live samples to the front; grow only when more than half is live,
+        # so a pruned buffer reuses its arrays (amortised O(1) per append)
+        live = self._hi - self._lo
+        size = len(self._t) * 2 if live > len(self._t) // 2 else len(self._t)
+        for name in ("_t", "_tick", "_a"):
+            old = getattr(self, name)
+            new = np.empty(size, dtype=old.dtype) if size != len(old) else old
+            new[:live] = old[self._lo:self._hi]
+            setattr(self, name, new)
+        self._lo, self._hi = 0, live
+
     def __len__(self) -> int:
+        if self.capacity is None:
+            return self._hi - self._lo
         return min(self._n, self.capacity)
 
     @property
+    def last_time_s(self) -> float:
+        """Time [s] of the newest sample (-inf when empty)."""
+        with self._lock:
+            if self._n == 0 or len(self) == 0:
+                return -math.inf
+            i = self._hi - 1 if self.capacity is None else (self._n - 1) % self.capacity
+            return float(self._t[i])
+
+    @property
     def dropped(self) -> int:
-        """Samples overwritten so far."""
-        return max(0, self._n - self.capacity)
+        """Samples overwritten so far (ring mode; always 0 when unbounded)."""
+        return 0 if self.capacity is None else max(0, self._n - self.capacity)
+
+    def _copy(self) -> Samples:
+        if self.capacity is None:
+            sl = slice(self._lo, self._hi)
+            return Samples(self._t[sl].copy(), self._tick[sl].copy(), self._a[sl].copy())
+        n = min(self._n, self.capacity)
+        idx = np.arange(self._n - n, self._n) % self.capacity
+        return Samples(self._t[idx].copy(), self._tick[idx].copy(), self._a[idx].copy())
 
     def snapshot(self, since_s: float | None = None) -> Samples:
         """Copy of the buffered samples (only those with time >= ``since_s`` if given)."""
         with self._lock:
-            n = min(self._n, self.capacity)
-            start = self._n - n
-            idx = np.arange(start, self._n) % self.capacity
-            out = Samples(self._t[idx].copy(), self._tick[idx].copy(), self._a[idx].copy())
+            out = self._copy()
         if since_s is not None:
             k = int(np.searchsorted(out.host_time_s, since_s, side="left"))
             out = Samples(out.host_time_s[k:], out.tick_ms[k:], out.angle_rad[k:])
         return out
 
+    def snapshot_around(self, t_s: float) -> Samples:
+        """The samples an interpolation at times >= ``t_s`` [s] needs: from the last
+        sample at or before ``t_s`` (with any samples sharing its time) to the newest.
+
+        Interpolating on this snapshot gives the same angles at ``t >= t_s`` as on the
+        whole buffer (see :func:`interpolate_angle`; duplicate times keep the first).
+        """
+        with self._lock:
+            out = self._copy()
+        k = _first_needed(out.host_time_s, t_s)
+        return Samples(out.host_time_s[k:], out.tick_ms[k:], out.angle_rad[k:])
+
+    def prune(self, before_s: float) -> int:
+        """Drop the samples no interpolation at times >= ``before_s`` [s] needs (keeps the
+        last sample at or before it); returns how many were dropped. Unbounded mode only
+        (a ring forgets by itself)."""
+        if self.capacity is not None:
+            return 0
+        with self._lock:
+            k = _first_needed(self._t[self._lo:self._hi], before_s)
+            self._lo += k
+            self._pruned += k
+        return k
+
     def clear(self) -> None:
         with self._lock:
-            self._n = 0
+            self._n = self._lo = self._hi = self._pruned = 0
+
+
+def _first_needed(t: np.ndarray, t_s: float) -> int:
+    """Index of the first sample an interpolation at ``t >= t_s`` needs in sorted ``t``."""
+    j = int(np.searchsorted(t, t_s, side="right")) - 1
+    if j <= 0:
+        return 0
+    return int(np.searchsorted(t, t[j], side="left"))
 
 
 class PositionSampler:
@@ -915,13 +1037,16 @@ class PositionSampler:
         Servo to sample (default: the nod servo).
     period_s : float
         Wall-clock period between READs [s] (0: as fast as the bus allows).
-    capacity : int
-        Size of the ring buffer.
+    capacity : int or None
+        ``None`` (default): keep every sample until the consumer prunes it
+        (:meth:`prune`); an int: a ring of the newest ``capacity`` samples.
 
     Notes
     -----
     A failed READ is counted in ``errors`` (last one in ``last_error``) and sampling
-    goes on. Samples are in :attr:`buffer`.
+    goes on; a line that is gone (the port vanished, the bus was closed) ends the thread
+    with the :class:`DeviceError` in :attr:`error`, for the owner to report once (the
+    session raises it from the capture). Samples are in :attr:`buffer`.
     """
 
     def __init__(
@@ -930,7 +1055,7 @@ class PositionSampler:
         servo_id: int = NOD_ID,
         *,
         period_s: float = 0.002,
-        capacity: int = 65536,
+        capacity: int | None = None,
     ):
         _check_id(servo_id)
         require(period_s >= 0, "sampler.period_s", period_s, ">= 0")
@@ -940,6 +1065,8 @@ class PositionSampler:
         self.buffer = SampleBuffer(capacity)
         self.errors = 0
         self.last_error: Exception | None = None
+        self.error: DeviceError | None = None
+        """Set when sampling stopped for good (the line failed)."""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -951,6 +1078,7 @@ class PositionSampler:
         """Start sampling (returns immediately)."""
         require(not self.running, "sampler.state", "running", "stopped before start()")
         self._stop.clear()
+        self.error = None
         self._thread = threading.Thread(target=self._run, name="dxl-sampler", daemon=True)
         self._thread.start()
         return self
@@ -972,6 +1100,10 @@ class PositionSampler:
         """Snapshot of the buffer (see :meth:`SampleBuffer.snapshot`)."""
         return self.buffer.snapshot(since_s)
 
+    def prune(self, before_s: float) -> int:
+        """Forget samples no interpolation at times >= ``before_s`` [s] needs."""
+        return self.buffer.prune(before_s)
+
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
@@ -980,6 +1112,12 @@ class PositionSampler:
             except DeviceError as e:
                 self.errors += 1
                 self.last_error = e
+                if isinstance(e, BusLineError) or not self.bus.is_open:
+                    self.error = e  # the line is gone: retrying only repeats the error
+                    return
+            except Exception as e:  # never a thread traceback: the owner reports it
+                self.error = DeviceError(f"servo {self.servo_id} sampler failed: {e!r}")
+                return
             if self.period_s:
                 self._stop.wait(self.period_s)
 

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +38,8 @@ from .actuators import (
 )
 from .assembly import AssemblyModel, PointCloud, ScanBatch, assemble
 
-__all__ = ["Session", "Capture", "DEFAULT_DESIGN", "JOINT_IDS"]
+__all__ = ["Session", "Capture", "DEFAULT_DESIGN", "JOINT_IDS", "LiveAssembler", "CloudSpool",
+           "Recorded", "record_capture"]
 
 JOINT_IDS = {"nod": NOD_ID, "mirror_left": MIRROR_LEFT_ID, "mirror_right": MIRROR_RIGHT_ID}
 
@@ -208,11 +209,23 @@ class Session:
     # -- capture ---------------------------------------------------------------------------
     def capture(self, stop: Callable[[list, NodController], bool], *, lift: bool = False,
                 on_scan: Callable[[Any, dict[str, PositionSampler]], None] | None = None,
-                nod_period_s: float = 0.002, mirror_period_s: float = 0.02) -> Capture:
+                nod_period_s: float = 0.002, mirror_period_s: float = 0.02,
+                keep: bool = True) -> Capture:
         """Nod, sample the servos and stream scans until ``stop(scans, nod)`` is true.
 
         ``lift`` lifts both mirrors first (else they are deployed). ``on_scan(scan,
-        samplers)`` runs for every scan (recording). Returns every scan and every sample.
+        samplers)`` runs for every scan (recording). Returns every scan and every sample
+        still buffered (samplers keep every sample unless ``on_scan`` prunes them).
+
+        ``keep=False`` (long captures whose ``on_scan`` consumes the scans): the scans are
+        not kept; ``stop`` gets a window with ``len()``, the first and the last scan, and
+        the returned capture has no scans - memory stays flat however long it runs.
+
+        Raises
+        ------
+        DeviceError
+            Once, for the first thing that failed: the nod controller, a sampler whose
+            line failed (the servo bus vanished), or the lidar stream.
         """
         bus = self.bus
         lifter = MirrorLift(bus, self.lift_left, self.lift_right)
@@ -223,32 +236,45 @@ class Session:
         for s in samplers.values():
             s.start()
         nod = NodController(bus, self.nod_profile())
-        scans: list = []
+        scans: list = [] if keep else _ScanWindow()
         t0 = self.time_source()
+        failed = False
         try:
             nod.start()
             for scan in self.urg.stream():
                 scans.append(scan)
+                _raise_sampler_error(samplers)
                 if on_scan is not None:
                     on_scan(scan, samplers)
                 if nod.error is not None:
                     nod.stop()  # raises DeviceError with the cause
                 if stop(scans, nod):
                     break
+        except BaseException:
+            failed = True
+            raise
         finally:
             try:
-                nod.stop()
+                if failed:  # report the first failure only: stopping may fail the same way
+                    try:
+                        nod.stop()
+                    except DeviceError:
+                        pass
+                else:
+                    nod.stop()
             finally:
                 for s in samplers.values():
                     s.stop()
+        _raise_sampler_error(samplers)
         self.last_turns = list(nod.turns)
         joints = {}
         for name, s in samplers.items():
             smp = s.samples()
             joints[name] = (smp.host_time_s, smp.angle_rad)
-        if len(joints["nod"][0]) < 2:
+        if samplers["nod"].buffer.total < 2:
             raise DeviceError("no nod servo samples were read; is the servo bus connected?")
-        return Capture(scans, joints, self.lift_left, self.lift_right, t0, self.time_source())
+        return Capture(scans if keep else [], joints, self.lift_left, self.lift_right, t0,
+                       self.time_source())
 
     def sweep(self, *, lift: bool = False, timeout_s: float | None = None) -> Capture:
         """One full nod ramp (lower -> upper pitch limit); progress on the log.
@@ -282,15 +308,261 @@ class Session:
         return Capture(keep, cap.joints, cap.lift_left, cap.lift_right, t_a, t_b)
 
 
+class _ScanWindow:
+    """What ``stop(scans, nod)`` sees of a capture that does not keep its scans: the
+    number of scans, the first and the last (``len(w)``, ``w[0]``, ``w[-1]``)."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.first = self.last = None
+
+    def append(self, scan) -> None:
+        if self.n == 0:
+            self.first = scan
+        self.last = scan
+        self.n += 1
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i: int):
+        if self.n and i in (0, -self.n):
+            return self.first
+        if self.n and i in (-1, self.n - 1):
+            return self.last
+        raise IndexError(f"a capture with keep=False holds only its first and last scan, not {i}")
+
+
+def _raise_sampler_error(samplers: Mapping[str, PositionSampler]) -> None:
+    for name, smp in samplers.items():
+        if smp.error is not None:
+            raise DeviceError(f"{name} servo sampling stopped: {smp.error}") from smp.error
+
+
+_STATS = ("beams", "error_codes", "no_nod", "mirror_moving", "blocked", "points")
+
+
+class LiveAssembler:
+    """Assemble scans while they stream in, each as soon as the servo samples cover it.
+
+    A scan is assembled once every joint has a sample newer than its last beam; the
+    samples it used are then pruned from the samplers behind the oldest scan not yet
+    assembled (see :meth:`need_since_s`), so memory stays flat however long the capture
+    runs and no scan ever lacks its samples. Interpolating on the covering samples gives
+    each beam the same angles as assembling the whole capture at once (linear
+    interpolation only looks at the two samples around a beam), so the points equal
+    those of :meth:`Capture.assemble` / ``nodlidar replay`` of the same recording.
+
+    Parameters
+    ----------
+    model : AssemblyModel
+    lift_left, lift_right : MirrorLiftProfile
+    sink : callable
+        Receives each assembled :class:`PointCloud` chunk (``scan`` numbered from the
+        first scan of the capture).
+    batch_scans : int
+        Assemble in batches of at least this many ready scans (vectorised work).
+    assemble_kw
+        Passed to :func:`~nodlidar.runtime.assembly.assemble` (frame, robot2sensor...).
+    """
+
+    def __init__(self, model: AssemblyModel, lift_left: MirrorLiftProfile,
+                 lift_right: MirrorLiftProfile, sink: Callable[[PointCloud], None], *,
+                 batch_scans: int = 20, **assemble_kw):
+        require(batch_scans >= 1, "batch_scans", batch_scans, ">= 1")
+        self.model, self.sink = model, sink
+        self.lift_left, self.lift_right = lift_left, lift_right
+        self.batch_scans = int(batch_scans)
+        self.assemble_kw = assemble_kw
+        self.pending: list = []
+        self.n_in = 0
+        self.n_done = 0
+        self.stats = dict.fromkeys(_STATS, 0)
+        self.max_pending = 0
+        self._span: list[tuple[float, float]] = []  # first/last beam time of each pending
+        self._done_until = -math.inf
+
+    def need_since_s(self) -> float:
+        """Earliest time [s] a scan not yet assembled may need samples for: the oldest
+        pending scan's first beam, or (none pending) the last assembled beam - the next
+        scan's beams come after it (-inf before the first scan)."""
+        if not self.pending:
+            return self._done_until
+        return self._span[0][0]
+
+    def add(self, scan, samplers: Mapping[str, PositionSampler]) -> int:
+        """Queue ``scan``; assemble the queued scans the samples cover. Returns how many
+        scans were assembled now."""
+        steps = np.asarray(scan.steps)
+        t = self.model.lidar.beam_time_s(float(scan.stamp_s), [steps.min(), steps.max()])
+        self.pending.append(scan)
+        self._span.append((float(t[0]), float(t[1])))
+        self.n_in += 1
+        self.max_pending = max(self.max_pending, len(self.pending))
+        if len(self.pending) < self.batch_scans:
+            return 0
+        joints = {k: smp.buffer.snapshot_around(self.need_since_s()) for k, smp in samplers.items()}
+        return self._assemble(joints, final=False)
+
+    def finish(self, joints: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> int:
+        """Assemble every scan still queued with the capture's final samples."""
+        return self._assemble(joints, final=True) if self.pending else 0
+
+    def _assemble(self, joints, final: bool) -> int:
+        def times(j):
+            return j.host_time_s if hasattr(j, "host_time_s") else j[0]
+
+        if final:
+            n = len(self.pending)
+        else:
+            # every joint must have a sample past a scan's last beam
+            cover = min((float(times(j)[-1]) if len(times(j)) else -math.inf)
+                        for j in joints.values())
+            n = 0
+            while n < len(self._span) and self._span[n][1] < cover:
+                n += 1
+            if n == 0:
+                return 0
+        batch, self.pending = self.pending[:n], self.pending[n:]
+        self._done_until = max(self._done_until, max(t1 for _, t1 in self._span[:n]))
+        self._span = self._span[n:]
+        cloud = assemble(self.model, ScanBatch.from_scans(batch), joints["nod"],
+                         mirror_left=joints.get("mirror_left"),
+                         mirror_right=joints.get("mirror_right"),
+                         lift_left=self.lift_left, lift_right=self.lift_right, **self.assemble_kw)
+        cloud = replace(cloud, scan=(cloud.scan + self.n_done).astype(np.int32))
+        for k in _STATS:
+            self.stats[k] += int(cloud.meta.get(k, 0))
+        self.n_done += n
+        self.sink(cloud)
+        return n
+
+
+_XYZ_DTYPE = {"float32": "<f4", "float64": "<f8"}
+
+
+class CloudSpool:
+    """Write a point cloud chunk by chunk (bounded memory) to ``path`` (.ply or .pcd,
+    binary, ``xyz_type`` coordinates as :func:`~nodlidar.runtime.cloud.write_cloud`).
+
+    Chunks go to ``path + '.part'`` as they come; :meth:`close` writes the header (the
+    point count and the summed assembly counters are known only then) and moves the rows
+    behind it, then removes the part file. The file equals :func:`write_cloud` of the
+    concatenated chunks.
+    """
+
+    def __init__(self, path: str | Path, *, xyz_type: str = "float32"):
+        require(xyz_type in _XYZ_DTYPE, "xyz_type", xyz_type, "'float32' or 'float64'")
+        self.xyz_type = xyz_type
+        self.path = Path(path)
+        require(self.path.suffix.lower() in (".ply", ".pcd"), "--cloud", str(path),
+                "a .ply or .pcd file name")
+        self.part = self.path.with_name(self.path.name + ".part")
+        self.n = 0
+        self.first: PointCloud | None = None
+        self._fh = None
+
+    def __call__(self, cloud: PointCloud) -> None:
+        from . import cloud as cloud_io
+
+        structured = getattr(cloud_io, "structured", None) or cloud_io._structured
+
+        if self._fh is None:
+            self._fh = self.part.open("wb")
+        if self.first is None:
+            self.first = cloud.select(np.zeros(0, dtype=int))
+        if len(cloud):
+            self._fh.write(structured(cloud, _XYZ_DTYPE[self.xyz_type]).tobytes())
+            self.n += len(cloud)
+
+    def close(self, model: AssemblyModel, stats: Mapping[str, int], frame: str = "sensor") -> Path:
+        """Finish the file: header with ``n`` points and ``stats`` as the cloud's meta."""
+        from .assembly import PointCloud as _PC
+        from .cloud import write_cloud
+
+        if self._fh is None:
+            self._fh = self.part.open("wb")
+        self._fh.close()
+        if self.first is not None:
+            empty = replace(self.first, meta=dict(stats))
+        else:
+            z = np.zeros(0)
+            empty = _PC(np.zeros((0, 3)), z, z.astype(np.int32), z.astype(np.int16),
+                        z.astype(np.int32), z, frame, model.design_name, model.design_hash,
+                        model.calibration_id, model.deployed.mirror_names, dict(stats))
+        head_file = self.path.with_name(self.path.name + ".head" + self.path.suffix)
+        try:
+            write_cloud(head_file, empty, xyz_type=self.xyz_type)
+            head = head_file.read_bytes()
+        finally:
+            head_file.unlink(missing_ok=True)
+        # the empty cloud's header says 0 points; the counts are whole header lines
+        for key in (b"element vertex", b"WIDTH", b"POINTS"):
+            head = head.replace(key + b" 0\n", key + b" %d\n" % self.n)
+        with self.path.open("wb") as out, self.part.open("rb") as body:
+            out.write(head)
+            while chunk := body.read(1 << 22):
+                out.write(chunk)
+        self.part.unlink()
+        return self.path
+
+    def discard(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+        self.part.unlink(missing_ok=True)
+
+
+@dataclass
+class Recorded:
+    """What :func:`record_capture` recorded.
+
+    Attributes
+    ----------
+    scans, samples : int
+        Scans and servo samples written to the bag.
+    t_start_s, t_end_s : float
+        The capture's span (session clock [s]).
+    cloud_points : int or None
+        Points of the live cloud (None without ``cloud``).
+    cloud_path : Path or None
+    stats : dict
+        Summed assembly counters of the live cloud (``beams``, ``no_nod``...).
+    max_pending_scans : int
+        Most scans ever waiting for their samples (the live assembly's lag).
+    max_buffered_samples : int
+        Most samples ever buffered by one sampler (bounded: flat memory).
+    """
+
+    scans: int
+    samples: int
+    t_start_s: float
+    t_end_s: float
+    cloud_points: int | None = None
+    cloud_path: Path | None = None
+    stats: dict = field(default_factory=dict)
+    max_pending_scans: int = 0
+    max_buffered_samples: int = 0
+
+
 def record_capture(session: Session, recorder, stop: Callable[[list, NodController], bool], *,
-                   lift: bool = False, log_every: int = 10) -> Capture:
+                   lift: bool = False, log_every: int = 10, cloud: str | Path | None = None,
+                   assemble_kw: Mapping[str, Any] | None = None,
+                   on_progress: Callable[[Recorded], None] | None = None) -> Recorded:
     """Capture while writing every scan and every servo sample to ``recorder`` (an open
     :class:`~nodlidar.runtime.bag.BagRecorder`), committing after each scan.
 
-    Returns the capture exactly as recorded (so a live cloud and its replay agree).
+    With ``cloud`` (a .ply/.pcd path) the capture is also assembled live
+    (:class:`LiveAssembler`, ``assemble_kw``: frame, robot2sensor...) and streamed to
+    that file. Scans are not kept and samples are pruned once they are in the bag and no
+    pending scan needs them: memory stays flat over hours, and the live cloud equals
+    ``nodlidar replay`` of the bag. ``on_progress(Recorded)`` runs after every scan.
     """
     lidar = session.design.lidar
     written = {j: float("-inf") for j in JOINT_IDS}
+    spool = CloudSpool(cloud) if cloud is not None else None
+    live = (LiveAssembler(session.model, session.lift_left, session.lift_right, spool,
+                          **dict(assemble_kw or {})) if spool is not None else None)
+    info = Recorded(0, 0, float("nan"), float("nan"), cloud_path=spool.path if spool else None)
 
     def flush(samplers) -> None:
         for name, smp in samplers.items():
@@ -304,15 +576,38 @@ def record_capture(session: Session, recorder, stop: Callable[[list, NodControll
         recorder.write_scan(scan, lidar)
         flush(samplers)
         recorder.commit()
+        if live is not None:
+            live.add(scan, samplers)
+        need = live.need_since_s() if live is not None else math.inf
+        for name, smp in samplers.items():
+            info.max_buffered_samples = max(info.max_buffered_samples, len(smp.buffer))
+            # a sample may go once it is in the bag and no pending scan needs it
+            smp.prune(min(need, written[name]))
+        info.scans = recorder.scans
+        if on_progress is not None:
+            on_progress(info)
         if log_every and recorder.scans % log_every == 0:
             session.log(f"recorded {recorder.scans} scans")
 
-    cap = session.capture(stop, lift=lift, on_scan=on_scan)
-    # the samplers have stopped: write what came after the last scan, so the bag holds
-    # exactly cap.joints
-    for name, (t, a) in cap.joints.items():
-        new = t > written[name]
-        if new.any():
-            recorder.write_samples(name, t[new], a[new])
-    recorder.commit()
-    return cap
+    try:
+        cap = session.capture(stop, lift=lift, on_scan=on_scan, keep=False)
+        # the samplers have stopped: write what came after the last scan, so the bag
+        # holds every sample the capture read
+        for name, (t, a) in cap.joints.items():
+            new = t > written[name]
+            if new.any():
+                recorder.write_samples(name, t[new], a[new])
+        recorder.commit()
+        info.scans, info.samples = recorder.scans, recorder.samples
+        info.t_start_s, info.t_end_s = cap.t_start_s, cap.t_end_s
+        if live is not None:
+            live.finish(cap.joints)
+            info.stats = dict(live.stats)
+            info.max_pending_scans = live.max_pending
+            info.cloud_points = spool.n
+            spool.close(session.model, live.stats, (assemble_kw or {}).get("frame", "sensor"))
+    except BaseException:
+        if spool is not None:
+            spool.discard()
+        raise
+    return info
