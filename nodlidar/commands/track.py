@@ -8,7 +8,12 @@ Three sources of scans, all through the same segmentation and tracker:
   over its emulated serial links (scene ``paper-tracking`` unless ``--scene``), through a
   runtime session: the head nods, every scan is assembled once the servo samples cover it
   (one scan of latency) and tracked as it arrives, for ``--scans`` scans;
-* ``--sim`` (the default when nothing is given): the simulator's direct API, no emulators.
+* ``--sim`` (the default when nothing is given): the simulator's direct API, no emulators,
+  its scans assembled by the runtime's assembly like the other two.
+
+``--calibration`` is the runtime's calibration in every source (a recording's own is
+replaced by it); ``--perturb`` builds the simulated sensor with as-built mirror errors
+(``--sim`` and simulated ``live``; a recording is what it is, so it is refused there).
 
 Each scan is segmented online (voxel inconsistency with the evidence so far), clustered,
 associated to tracks; every track update is printed (``--json``: one JSON object per line
@@ -106,7 +111,10 @@ def run(args) -> int:
     if args.recording and not args.sim and args.recording != "live":
         from ..tracking.recording import scans_from_recording
 
-        design, scans = scans_from_recording(args.recording, sensor_height_m=args.sensor_height)
+        require(args.perturb == "none", "--perturb", args.perturb,
+                "none with a recording (it applies to the simulated sensor: --sim or live)")
+        design, scans = scans_from_recording(args.recording, sensor_height_m=args.sensor_height,
+                                             calibration=args.calibration)
         print(f"recording {args.recording}: {len(scans)} scans (calibration "
               f"{scans[0].calibration_id})", file=sys.stderr)
     else:
@@ -118,10 +126,24 @@ def run(args) -> int:
         _live(args, step)
         return 0
     if scans is None:
+        from ..runtime.assembly import AssemblyModel
         from ..tracking.simdata import simulate_scans
+        from ._runtime_args import sim_perturbations
 
+        perts, cal_id = None, "none"
+        if args.calibration is not None:
+            from ..calibration.calfile import load_calibration
+
+            cal = load_calibration(args.calibration, design)
+            perts, cal_id = cal.perturbations, cal.id
+        # the runtime's model, as a live session builds it: the design, calibrated by the
+        # file if one is given (not by the simulator's truth)
+        model = AssemblyModel.from_design(design, perts, cal_id)
         scans = simulate_scans(design, args.scans, mirrors_deployed=not args.lifted,
-                               scene=args.scene, noise=not args.no_noise, seed=args.seed)
+                               scene=args.scene, noise=not args.no_noise, seed=args.seed,
+                               perturbations=sim_perturbations(args.perturb), model=model)
+        print(f"sim: {len(scans)} scans (sensor as built: {args.perturb}; calibration "
+              f"{model.calibration_id})", file=sys.stderr)
     for scan in scans:
         step(scan)
     sys.stdout.flush()

@@ -34,7 +34,8 @@ _PLACEHOLDER_M = 1.0  # any valid range: the assembly keeps the beam, its NaN is
 
 def scans_from_capture(model, scans, joints, lift_profiles=(None, None), *,
                        sensor_height_m: float = DEFAULT_SENSOR_HEIGHT_M,
-                       first_index: int = 0) -> list[ScanPoints]:
+                       first_index: int = 0, pose=None,
+                       truth_id: np.ndarray | None = None) -> list[ScanPoints]:
     """Runtime scans + servo samples -> one :class:`ScanPoints` per scan with any beam kept.
 
     Parameters
@@ -50,6 +51,11 @@ def scans_from_capture(model, scans, joints, lift_profiles=(None, None), *,
         Height of the sensor base above the floor [m] (module docstring).
     first_index : int
         ``ScanPoints.scan`` of the first scan (scan indices count on across calls).
+    pose : object with ``to_world(p (n, 3), t (n,))`` and ``rotation (3, 3)``, optional
+        The sensor base's pose in the world (e.g. :class:`nodlidar.sim.scene.SensorPose`:
+        the simulator's known robot pose); replaces ``sensor_height_m`` when given.
+    truth_id : (n_scans, lidar.n_steps) int, optional
+        Ground-truth object id per scan and step (simulator), carried to ``ScanPoints``.
     """
     from ..runtime.assembly import ScanBatch, assemble
 
@@ -76,9 +82,14 @@ def scans_from_capture(model, scans, joints, lift_profiles=(None, None), *,
     for bm, sel in ((model.deployed, ~lifted), (model.lifted, lifted)):
         if sel.any():
             start[sel], direc[sel], off[sel] = bm.rays(step[sel], nod[sel])
-    lift = np.array([0.0, 0.0, float(sensor_height_m)])
-    pts = np.where(missing[:, None], np.nan, cloud.xyz + lift)
-    start = start + lift
+    if pose is None:
+        lift = np.array([0.0, 0.0, float(sensor_height_m)])
+        xyz, start = cloud.xyz + lift, start + lift
+    else:
+        xyz, start = pose.to_world(cloud.xyz, t), pose.to_world(start, t)
+        direc = direc @ pose.rotation.T
+    pts = np.where(missing[:, None], np.nan, xyz)
+    tid = None if truth_id is None else np.asarray(truth_id)[scan_i, step - lidar.step_min]
     out = []
     bounds = np.flatnonzero(np.diff(scan_i)) + 1  # assemble keeps the batch's scan order
     for idx in np.split(np.arange(len(t)), bounds):
@@ -87,16 +98,22 @@ def scans_from_capture(model, scans, joints, lift_profiles=(None, None), *,
         out.append(ScanPoints(scan=first_index + k, steps=step[order], t_s=t[order],
                               mirror=cloud.mirror[order].astype(int), range_m=rng[order],
                               points=pts[order], ray_start=start[order], ray_dir=direc[order],
-                              ray_offset=off[order], calibration_id=cloud.calibration_id))
+                              ray_offset=off[order], calibration_id=cloud.calibration_id,
+                              truth_id=None if tid is None else np.where(missing[order], -1,
+                                                                         tid[order])))
     return out
 
 
 def scans_from_recording(path: str | Path, *,
-                         sensor_height_m: float = DEFAULT_SENSOR_HEIGHT_M):
+                         sensor_height_m: float = DEFAULT_SENSOR_HEIGHT_M,
+                         calibration: str | Path | None = None):
     """Read a recording and return ``(design, [ScanPoints, ...])`` (see the module docstring).
 
     Beams whose nod angle is unknown (outside the servo samples), whose mirror was moving,
     or that the calibrated mirrors block are dropped, as in the assembly.
+
+    ``calibration``: a calibration file of the recording's design, used instead of the
+    calibration the recording was made with (a sensor calibrated after recording).
     """
     from ..errors import DesignFileError
     from ..runtime.assembly import AssemblyModel
@@ -104,6 +121,11 @@ def scans_from_recording(path: str | Path, *,
 
     contents = read_recording(path)
     design, perts, cal_id = design_from_header(contents.header)
+    if calibration is not None:
+        from ..calibration.calfile import load_calibration
+
+        cal = load_calibration(calibration, design)
+        perts, cal_id = cal.perturbations, cal.id
     model = AssemblyModel.from_design(design, perts, cal_id)
     out = scans_from_capture(model, contents.scans, contents.joints, contents.lift_profiles(),
                              sensor_height_m=sensor_height_m)

@@ -49,7 +49,24 @@ class SegmentConfig:
     ground_z_m, ground_clearance_m : float
         Floor height in the world [m] and the band above it removed as ground [m].
     cluster_radius_m : float
-        Points closer than this join one cluster [m].
+        Largest linking distance of the clustering [m], and how far a fragment smaller than
+        ``min_cluster_points`` may be from a cluster to join it (``cluster_plane=False``: the
+        fixed 3D radius, the paper's Euclidean clustering).
+    cluster_plane : bool
+        Cluster the ground-plane projection (x, y) with a range-adaptive linking distance
+        (default): ``eps = clip(cluster_beams * range * beam step, cluster_min_m,
+        cluster_radius_m)`` per point, two points linked when closer than the larger of
+        their two. Objects stand on the floor, so an object's slices at different heights
+        (different nod angles, different mirror windows) overlap in the top view, while two
+        objects side by side are apart there; the linking distance follows the beam spacing,
+        which grows with range, instead of one radius for every range.
+    cluster_min_m : float
+        Smallest linking distance [m] (the default 0.05 m: below the 6-9 cm gap between two
+        people side by side, above the 1-2 cm beam spacing on a surface at 2-3 m).
+    cluster_beams : float
+        Linking distance in beam spacings at the point's range.
+    beam_step_rad : float
+        Angle between neighbouring beams [rad] (URG-04LX: 2 pi / 1024).
     min_cluster_points : int
         Smaller clusters are ignored (noise).
     min_inconsistent_points : int
@@ -68,6 +85,10 @@ class SegmentConfig:
     ground_z_m: float = 0.0
     ground_clearance_m: float = 0.06
     cluster_radius_m: float = 0.15
+    cluster_plane: bool = True
+    cluster_min_m: float = 0.05
+    cluster_beams: float = 4.0
+    beam_step_rad: float = 2 * np.pi / 1024
     min_cluster_points: int = 5
     min_inconsistent_points: int = 3
     min_inconsistent_fraction: float = 0.15
@@ -76,6 +97,9 @@ class SegmentConfig:
     def __post_init__(self) -> None:
         require(self.voxel_m > 0, "voxel_m", self.voxel_m, "> 0 m")
         require(self.cluster_radius_m > 0, "cluster_radius_m", self.cluster_radius_m, "> 0 m")
+        require(0 < self.cluster_min_m <= self.cluster_radius_m, "cluster_min_m",
+                self.cluster_min_m, f"> 0 m and <= cluster_radius_m ({self.cluster_radius_m} m)")
+        require(self.cluster_beams > 0, "cluster_beams", self.cluster_beams, "> 0")
         require(0 <= self.min_inconsistent_fraction <= 1, "min_inconsistent_fraction",
                 self.min_inconsistent_fraction, "0..1")
         require(self.min_scan_gap >= 1, "min_scan_gap", self.min_scan_gap, ">= 1")
@@ -108,15 +132,22 @@ class Segmented:
         return [np.flatnonzero(self.dynamic & (self.cluster == c)) for c in labs]
 
 
-def cluster_points(points: np.ndarray, radius_m: float, min_points: int = 1) -> np.ndarray:
-    """Euclidean clustering: connected components of the ``radius_m`` neighbour graph.
+def cluster_points(points: np.ndarray, radius_m, min_points: int = 1,
+                   attach_m: float = 0.0) -> np.ndarray:
+    """Euclidean clustering: connected components of the neighbour graph.
 
     Parameters
     ----------
-    points : (n, 3) float
-    radius_m : float
+    points : (n, 3) or (n, 2) float
+    radius_m : float or (n,) float
+        Linking distance [m]; per point, two points are linked when closer than the larger
+        of their two distances.
     min_points : int
-        Components smaller than this get label -1.
+        Components smaller than this get label -1 ...
+    attach_m : float
+        ... unless a point of a kept component is within ``attach_m`` [m]: then they join
+        the nearest one's cluster (DBSCAN's border points: the sparse silhouette edge of an
+        object, where beams graze its surface, joins the object instead of being lost).
 
     Returns
     -------
@@ -125,15 +156,25 @@ def cluster_points(points: np.ndarray, radius_m: float, min_points: int = 1) -> 
     n = len(points)
     if n == 0:
         return np.zeros(0, int)
-    pairs = cKDTree(points).query_pairs(radius_m, output_type="ndarray")
+    eps = np.broadcast_to(np.asarray(radius_m, float), (n,))
+    pairs = cKDTree(points).query_pairs(float(eps.max()), output_type="ndarray")
+    if np.ptp(eps) > 0 and len(pairs):
+        d = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
+        pairs = pairs[d <= np.maximum(eps[pairs[:, 0]], eps[pairs[:, 1]])]
     g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     _, lab = connected_components(g, directed=False)
     sizes = np.bincount(lab)
     keep = sizes[lab] >= min_points
     # relabel kept components 0..c-1
     uniq, lab2 = np.unique(np.where(keep, lab, -1), return_inverse=True)
-    lab2 = lab2 - (1 if uniq[0] == -1 else 0)
-    return np.where(keep, lab2, -1)
+    lab2 = np.where(keep, lab2 - (1 if uniq[0] == -1 else 0), -1)
+    small = np.flatnonzero(~keep)
+    if attach_m > 0 and len(small) and keep.any():
+        kept = np.flatnonzero(keep)
+        d, j = cKDTree(points[kept]).query(points[small], distance_upper_bound=attach_m)
+        near = np.isfinite(d)
+        lab2[small[near]] = lab2[kept[j[near]]]
+    return lab2
 
 
 def new_map(cfg: SegmentConfig, range_sigma=None) -> VoxelMap:
@@ -165,7 +206,13 @@ def classify(vmap: VoxelMap, scan: ScanPoints, cfg: SegmentConfig) -> Segmented:
     if len(idx):
         p = scan.points[idx]
         inc[idx] = vmap.inconsistent(p, scan.scan, cfg.min_scan_gap)
-        lab[idx] = cluster_points(p, cfg.cluster_radius_m, cfg.min_cluster_points)
+        if cfg.cluster_plane:
+            eps = np.clip(cfg.cluster_beams * scan.range_m[idx] * cfg.beam_step_rad,
+                          cfg.cluster_min_m, cfg.cluster_radius_m)
+            lab[idx] = cluster_points(p[:, :2], eps, cfg.min_cluster_points,
+                                      attach_m=cfg.cluster_radius_m)
+        else:
+            lab[idx] = cluster_points(p, cfg.cluster_radius_m, cfg.min_cluster_points)
         ok = lab >= 0
         if ok.any():
             size = np.bincount(lab[ok])

@@ -114,34 +114,58 @@ def project_scan(beam_model, scan: int, steps: np.ndarray, range_m: np.ndarray, 
 
 def simulate_scans(design, n_scans: int, *, mirrors_deployed: bool = True,
                    scene="paper-tracking", perturbations=None, noise: bool = True,
-                   seed: int = 0, t0_s: float = 0.0, simulator=None) -> list[ScanPoints]:
-    """Simulate ``n_scans`` consecutive scans of ``scene`` (direct simulator API).
+                   seed: int = 0, t0_s: float = 0.0, simulator=None,
+                   model=None) -> list[ScanPoints]:
+    """Simulate ``n_scans`` consecutive scans of ``scene`` (direct simulator API) and
+    assemble them as the runtime does.
 
     The head nods along ``design.spec.nod`` (triangle ramp starting at the lower pitch limit at
-    ``t0_s``); the mirrors are deployed or lifted for the whole run. The same ``perturbations``
-    are given to the simulator (as built) and to the runtime beam model (as calibrated), so the
-    projection is exact up to range noise.
+    ``t0_s``); the mirrors are deployed or lifted for the whole run. The simulator is built
+    with ``perturbations`` (the sensor as built). The scans then go through the runtime's
+    one projection path, :func:`nodlidar.runtime.assembly.assemble` (via
+    :func:`nodlidar.tracking.recording.scans_from_capture`), with ``model``: the runtime's
+    :class:`~nodlidar.runtime.assembly.AssemblyModel` (its calibration, its re-traced beam
+    map). Default ``model``: the design calibrated exactly, i.e. built from the same
+    ``perturbations`` (so the projection is exact up to range noise); pass
+    ``AssemblyModel.from_design(design)`` for an uncalibrated runtime, or one from a
+    calibration file. The nod samples handed to the assembly are the simulator's pitch at
+    every beam time (a servo read per beam), so the only projection error is the model's.
+    Points are placed in the world by the scene's (known) sensor pose.
 
     Returns
     -------
-    list of ScanPoints, with ``truth_id`` from the simulator.
+    list of ScanPoints (beams the assembly drops are absent), with ``truth_id`` from the
+    simulator and ``calibration_id`` from ``model``.
     """
+    from types import SimpleNamespace
+
+    from ..runtime.assembly import AssemblyModel
     from ..sim.raycast import SceneSimulator
     from ..sim.scene import load_scene
+    from .recording import scans_from_capture
 
     require(n_scans >= 1, "n_scans", n_scans, ">= 1")
     sim = simulator or SceneSimulator(design, load_scene(scene), perturbations)
-    bm = design.beam_model(perturbations, mirrors_deployed=mirrors_deployed)
+    if model is None:
+        model = AssemblyModel.from_design(design, perturbations,
+                                          "simulated" if perturbations else "none")
     lift = 0.0 if mirrors_deployed else 1.0
     nod = None if t0_s == 0.0 else (lambda t: design.spec.nod.pitch_at(t, t0_s))
     truths = sim.scans(n_scans, t0_s=t0_s, nod=nod, lift_left=lift, lift_right=lift, noise=noise,
                        seed=seed)
-    out = []
+    lidar = model.lidar
+    raw, tid = [], np.full((len(truths), lidar.n_steps), -1, dtype=np.int64)
     for k, st in enumerate(truths):
         r = st.measured_m()
-        out.append(project_scan(bm, k, st.steps, r, st.t_s, st.nod_rad, sim.scene.sensor,
-                                np.where(np.isfinite(r), st.object_id, -1)))
-    return out
+        # stamp = step 0's time (SPEC p.12), the convention the assembly's beam times use
+        stamp = float(st.t_s[0] - st.steps[0] * lidar.step_period_s)
+        raw.append(SimpleNamespace(steps=st.steps, ranges_m=r, stamp_s=stamp))
+        tid[k, st.steps - lidar.step_min] = np.where(np.isfinite(r), st.object_id, -1)
+    nod_t = np.concatenate([st.t_s for st in truths])
+    nod_a = np.concatenate([st.nod_rad for st in truths])
+    state = "deployed" if mirrors_deployed else "lifted"
+    joints = {"nod": (nod_t, nod_a), "mirror_left": state, "mirror_right": state}
+    return scans_from_capture(model, raw, joints, pose=sim.scene.sensor, truth_id=tid)
 
 
 def _ray_cylinder(o, d, c_xy, radius, z0, z1):

@@ -19,7 +19,9 @@ block replaced by the refinement's curvature covariance when that is available a
 
 from __future__ import annotations
 
+import datetime as _dt
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -31,16 +33,42 @@ __all__ = ["TrackerConfig", "TrackState", "Tracker"]
 
 @dataclass(frozen=True)
 class TrackerConfig:
-    """Tracker parameters (see the module docstring)."""
+    """Tracker parameters (see the module docstring).
+
+    Attributes
+    ----------
+    gate_m : float
+        Largest distance [m] from a track's predicted position to a cluster it may take.
+    gate_chi2 : float
+        Chi-square gate on the position innovation (2 dof; 13.8 = 99.9 %).
+    merge_m : float
+        Clusters left over within this of a track's assigned cluster join it [m].
+    confirm_scans, max_missed, window_scans : int
+    entropy, sigma_m, voxel_m, max_points, warm_search_m_s, warm_voxel_grid
+        The entropy refinement (:func:`refine_motion`).
+    position_sigma_m : float
+        Measurement noise of the centroid [m] (the visible part of an object changes with
+        the nod and the mirror window).
+    velocity_sigma_m_s : float
+        Least measurement noise of the entropy velocity [m/s] (the refinement's own curvature
+        covariance is unscaled; this floors it).
+    accel_sigma_m_s2 : float
+        Constant-velocity process noise: white acceleration spectral density, as a sigma
+        [m/s^2 per sqrt(Hz)] (people and robots at walking pace change velocity slowly).
+    """
 
     gate_m: float = 0.6
+    gate_chi2: float = 13.8
+    merge_m: float = 0.3
     confirm_scans: int = 2
     max_missed: int = 12
     window_scans: int = 40
     entropy: str = "renyi"
     sigma_m: float = 0.02
     voxel_m: float = 0.03
-    position_sigma_m: float = 0.03
+    position_sigma_m: float = 0.05
+    velocity_sigma_m_s: float = 0.01
+    accel_sigma_m_s2: float = 0.05
     max_points: int = 300
     warm_search_m_s: float = 0.03
     # voxel entropy, warm start: grid-search levels (points per axis) over +-warm_search_m_s;
@@ -55,6 +83,11 @@ class TrackerConfig:
         require(self.max_missed >= 0, "max_missed", self.max_missed, ">= 0")
         require(self.entropy in ("voxel", "renyi"), "entropy", self.entropy, "voxel or renyi")
         require(self.gate_m > 0, "gate_m", self.gate_m, "> 0 m")
+        require(self.gate_chi2 > 0, "gate_chi2", self.gate_chi2, "> 0")
+        require(self.merge_m >= 0, "merge_m", self.merge_m, ">= 0 m")
+        require(self.window_scans >= 2, "window_scans", self.window_scans, ">= 2")
+        for name in ("position_sigma_m", "velocity_sigma_m_s", "accel_sigma_m_s2"):
+            require(getattr(self, name) > 0, name, getattr(self, name), "> 0")
         require(len(self.warm_voxel_grid) >= 1 and all(int(n) == n and n >= 3
                                                        for n in self.warm_voxel_grid),
                 "warm_voxel_grid", self.warm_voxel_grid, "one or more integers >= 3")
@@ -68,11 +101,11 @@ class TrackState:
     ----------
     track_id, scan : int
     t_s : float
-        Time of the latest points [s].
+        Time of the state (the latest cluster's mean beam time) [s].
     x_m, y_m : float
-        Ground-plane centroid of the latest scan's points [m].
+        Filtered ground-plane position [m].
     v_m_s, heading_rad : float
-        Speed [m/s] and heading [rad] (nan before two scans).
+        Filtered speed [m/s] and heading [rad] (nan before a velocity was measured).
     cov : (4, 4) float
         Covariance of (x, y, vx, vy) [m, m/s].
     n_scans, n_points : int
@@ -103,124 +136,228 @@ class TrackState:
                 "n_points": self.n_points, "confirmed": self.confirmed, "alive": self.alive}
 
 
+# (x, vx, y, vy) (Stone Soup's order) <-> (x, y, vx, vy) (TrackState's)
+_PERM = np.array([0, 2, 1, 3])
+_EPOCH = _dt.datetime(2000, 1, 1, tzinfo=_dt.UTC)
+
+
+def _stamp(t_s: float) -> _dt.datetime:
+    return _EPOCH + _dt.timedelta(seconds=float(t_s))
+
+
 @dataclass
 class _Track:
     track_id: int
     points: list = field(default_factory=list)
     times: list = field(default_factory=list)
     mirrors: list = field(default_factory=list)
+    truth: list = field(default_factory=list)
     scans: list = field(default_factory=list)
     centroids: list = field(default_factory=list)
     t_centroids: list = field(default_factory=list)
     last_scan: int = 0
     motion: MotionEstimate | None = None
     coarse: MotionEstimate | None = None
-    cov: np.ndarray = field(default_factory=lambda: np.eye(4))
+    state: Any = None  # stonesoup GaussianState (x, vx, y, vy)
+    history: list = field(default_factory=list)  # TrackState after every update
 
-    def predict(self, t: float) -> np.ndarray:
-        c = self.centroids[-1]
-        if self.motion is None:
-            return c
-        return c + self.motion.velocity * (t - self.t_centroids[-1])
+    @property
+    def cov(self) -> np.ndarray:
+        return np.asarray(self.state.covar, float)[np.ix_(_PERM, _PERM)]
+
+    @property
+    def x(self) -> np.ndarray:
+        """Filtered (x, y, vx, vy)."""
+        return np.asarray(self.state.state_vector, float).ravel()[_PERM]
 
 
 class Tracker:
     """Multi-object tracker over segmented scans (module docstring).
 
-    ``update(segmented)`` returns the states of the tracks that changed in this scan
+    ``update(scan)`` takes a :class:`~nodlidar.tracking.segment.Segmented` scan, or a
+    :class:`~nodlidar.tracking.simdata.ScanPoints` (segmented here, online, with ``segment``
+    and ``range_sigma``), and returns the states of the tracks that changed in this scan
     (updated, or ended).
+
+    Parameters
+    ----------
+    config : TrackerConfig
+    segment : SegmentConfig, optional
+    range_sigma : callable, optional
+        The lidar's ``range_sigma_m(r)`` for the online segmenter's carving margin.
     """
 
-    def __init__(self, config: TrackerConfig = TrackerConfig()) -> None:
+    def __init__(self, config: TrackerConfig = TrackerConfig(), segment=None,
+                 range_sigma=None) -> None:
         self.config = config
         self.tracks: dict[int, _Track] = {}
         self.ended: list[_Track] = []
         self._next_id = 1
+        self._segment = segment
+        self._range_sigma = range_sigma
+        self._segmenter = None
+        self._kf = None
 
+    # -- Stone Soup pieces (imported on first use) -------------------------------------
+    def _filters(self):
+        if self._kf is None:
+            from stonesoup.models.measurement.linear import LinearGaussian
+            from stonesoup.models.transition.linear import (
+                CombinedLinearGaussianTransitionModel,
+                ConstantVelocity,
+            )
+            from stonesoup.predictor.kalman import KalmanPredictor
+            from stonesoup.updater.kalman import KalmanUpdater
+
+            q = self.config.accel_sigma_m_s2 ** 2
+            tm = CombinedLinearGaussianTransitionModel([ConstantVelocity(q), ConstantVelocity(q)])
+            mm = LinearGaussian(4, (0, 2), np.eye(2) * self.config.position_sigma_m ** 2)
+            self._kf = (KalmanPredictor(tm), KalmanUpdater(mm), LinearGaussian)
+        return self._kf
+
+    def _birth(self, c: np.ndarray, t: float):
+        from stonesoup.types.state import GaussianState
+
+        sp, sv = self.config.position_sigma_m, 0.5  # a person walks at most ~1.5 m/s: 3 sigma
+        return GaussianState(np.array([[c[0]], [0.0], [c[1]], [0.0]]),
+                             np.diag([sp ** 2, sv ** 2, sp ** 2, sv ** 2]), timestamp=_stamp(t))
+
+    def _predict(self, tr: _Track, t: float):
+        pred, _, _ = self._filters()
+        return pred.predict(tr.state, timestamp=_stamp(t))
+
+    def _update(self, tr: _Track, prior, c: np.ndarray, vel, vel_cov) -> None:
+        from stonesoup.types.detection import Detection
+        from stonesoup.types.hypothesis import SingleHypothesis
+
+        _, upd, LinearGaussian = self._filters()
+        cfg = self.config
+        if vel is None:
+            z = np.array([[c[0]], [c[1]]])
+            mm = LinearGaussian(4, (0, 2), np.eye(2) * cfg.position_sigma_m ** 2)
+        else:
+            z = np.array([[c[0]], [c[1]], [vel[0]], [vel[1]]])
+            R = np.zeros((4, 4))
+            R[:2, :2] = np.eye(2) * cfg.position_sigma_m ** 2
+            vc = np.asarray(vel_cov, float) if vel_cov is not None else np.zeros((2, 2))
+            if not np.all(np.isfinite(vc)):
+                vc = np.zeros((2, 2))
+            R[2:, 2:] = vc + np.eye(2) * cfg.velocity_sigma_m_s ** 2
+            mm = LinearGaussian(4, (0, 2, 1, 3), R)
+        det = Detection(z, timestamp=prior.timestamp, measurement_model=mm)
+        tr.state = upd.update(SingleHypothesis(prior, det))
+
+    # -- per scan ------------------------------------------------------------------------
     def _state(self, tr: _Track, alive: bool = True) -> TrackState:
-        c = tr.centroids[-1]
-        m = tr.motion
-        return TrackState(tr.track_id, tr.last_scan, float(tr.t_centroids[-1]), float(c[0]),
-                          float(c[1]), m.v_m_s if m else float("nan"),
-                          m.heading_rad if m else float("nan"), tr.cov.copy(), len(tr.scans),
-                          int(sum(len(p) for p in tr.points)),
+        x = tr.x
+        has_v = tr.motion is not None
+        return TrackState(tr.track_id, tr.last_scan,
+                          (tr.state.timestamp - _EPOCH).total_seconds(), float(x[0]),
+                          float(x[1]), float(np.hypot(x[2], x[3])) if has_v else float("nan"),
+                          float(np.arctan2(x[3], x[2])) if has_v else float("nan"), tr.cov,
+                          len(tr.scans), int(sum(len(p) for p in tr.points)),
                           len(tr.scans) >= self.config.confirm_scans, alive)
 
     def _estimate(self, tr: _Track) -> None:
+        """Entropy refinement of the track's window (its velocity measurement)."""
         cfg = self.config
-        k = len(tr.scans)
-        if k < 2:
-            s = cfg.position_sigma_m ** 2
-            tr.cov = np.diag([s, s, 1.0, 1.0])
+        if len(tr.scans) < 2:
             return
         C = np.array(tr.centroids[-cfg.window_scans:])
         T = np.array(tr.t_centroids[-cfg.window_scans:])
+        if np.ptp(T) <= 0:
+            return
         tr.coarse = coarse_motion(C, T)
         P = np.concatenate(tr.points[-cfg.window_scans:])
         Tp = np.concatenate(tr.times[-cfg.window_scans:])
+        if len(P) < 3:
+            return
         # warm start from the previous refinement (a small search around it), cold from the
         # centroid line: keeps one update well inside the scan period
         warm = tr.motion is not None
         tr.motion = refine_motion(P, Tp, tr.motion if warm else tr.coarse, entropy=cfg.entropy,
-                                  sigma_m=cfg.sigma_m, voxel_m=cfg.voxel_m, n_scans=k,
+                                  sigma_m=cfg.sigma_m, voxel_m=cfg.voxel_m, n_scans=len(tr.scans),
                                   max_points=cfg.max_points,
                                   search_m_s=cfg.warm_search_m_s if warm else 0.08,
                                   **({"voxel_grid": cfg.warm_voxel_grid} if warm else {}))
-        # OLS covariance of the centroid line (isotropic residual variance)
-        tc = T - T.mean()
-        res = C - (C.mean(axis=0) + np.outer(tc, tr.coarse.velocity))
-        dof = max(2 * len(C) - 4, 1)
-        s2 = max(float(np.sum(res ** 2)) / dof, cfg.position_sigma_m ** 2 / 4)
-        var_v = s2 / float(np.sum(tc ** 2))
-        var_p = s2 * (1.0 / len(C) + tc[-1] ** 2 / float(np.sum(tc ** 2)))
-        cov = np.zeros((4, 4))
-        cov[0, 0] = cov[1, 1] = var_p
-        cov[2, 2] = cov[3, 3] = var_v
-        cov[0, 2] = cov[2, 0] = cov[1, 3] = cov[3, 1] = s2 * tc[-1] / float(np.sum(tc ** 2))
-        rc = tr.motion.cov
-        if rc is not None and np.all(np.isfinite(rc)) and np.trace(rc) < 2 * var_v:
-            cov[2:, 2:] = rc
-        tr.cov = cov
+
+    def _segmented(self, scan):
+        if hasattr(scan, "objects"):
+            return scan
+        from .segment import OnlineSegmenter, SegmentConfig
+
+        if self._segmenter is None:
+            self._segmenter = OnlineSegmenter(self._segment or SegmentConfig(), self._range_sigma)
+        return self._segmenter.update(scan)
 
     def update(self, seg) -> list[TrackState]:
-        """Feed one segmented scan; returns the states that changed."""
+        """Feed one scan (segmented, or ScanPoints); returns the states that changed."""
+        from scipy.optimize import linear_sum_assignment
+
         cfg = self.config
+        seg = self._segmented(seg)
         scan = seg.scan
         objs = seg.objects()
         cents = [scan.points[i, :2].mean(axis=0) for i in objs]
         times = [float(scan.t_s[i].mean()) for i in objs]
         ids = list(self.tracks)
-        pairs = []
+        big = 1e9
+        cost = np.full((len(ids), len(objs)), big)
+        priors: dict[tuple[int, int], Any] = {}
         for a, tid in enumerate(ids):
             tr = self.tracks[tid]
             for b, (c, t) in enumerate(zip(cents, times)):
-                d = float(np.linalg.norm(tr.predict(t) - c))
-                if d <= cfg.gate_m:
-                    pairs.append((d, a, b))
-        used_t, used_o, assign = set(), set(), {}
-        for _d, a, b in sorted(pairs):
-            if a in used_t or b in used_o:
-                continue
-            used_t.add(a)
-            used_o.add(b)
-            assign[b] = ids[a]
-        changed = []
-        for b, idx in enumerate(objs):
+                prior = self._predict(tr, t)
+                m = np.asarray(prior.state_vector, float).ravel()
+                P = np.asarray(prior.covar, float)
+                d = c - m[[0, 2]]
+                if float(np.hypot(*d)) > cfg.gate_m:
+                    continue
+                S = P[np.ix_([0, 2], [0, 2])] + np.eye(2) * cfg.position_sigma_m ** 2
+                d2 = float(d @ np.linalg.solve(S, d))
+                if d2 <= cfg.gate_chi2:
+                    cost[a, b] = d2
+                    priors[a, b] = prior
+        assign: dict[int, int] = {}
+        if len(ids) and len(objs):
+            rows, cols = linear_sum_assignment(cost)
+            assign = {int(b): int(a) for a, b in zip(rows, cols) if cost[a, b] < big}
+        # leftovers near a track's assigned cluster are pieces of the same object
+        members: dict[int, list[int]] = {a: [b] for b, a in assign.items()}
+        births = []
+        for b in range(len(objs)):
             if b in assign:
-                tr = self.tracks[assign[b]]
+                continue
+            near = [(float(np.hypot(*(cents[b] - cents[bb]))), a) for bb, a in assign.items()]
+            near = [x for x in near if x[0] <= cfg.merge_m]
+            if near:
+                members[min(near)[1]].append(b)
             else:
-                tr = _Track(self._next_id)
-                self.tracks[tr.track_id] = tr
-                self._next_id += 1
-            tr.points.append(scan.points[idx])
-            tr.times.append(scan.t_s[idx])
-            tr.mirrors.append(scan.mirror[idx])
-            tr.scans.append(scan.scan)
-            tr.centroids.append(cents[b])
-            tr.t_centroids.append(times[b])
-            tr.last_scan = scan.scan
+                births.append(b)
+        changed = []
+        for a, bs in members.items():
+            tr = self.tracks[ids[a]]
+            idx = np.concatenate([objs[b] for b in bs])
+            c = scan.points[idx, :2].mean(axis=0)
+            t = float(scan.t_s[idx].mean())
+            prior = priors[a, bs[0]] if len(bs) == 1 else self._predict(tr, t)
+            self._add(tr, scan, idx, c, t)
             self._estimate(tr)
-            changed.append(self._state(tr))
+            m = tr.motion
+            self._update(tr, prior, c, None if m is None else m.velocity,
+                         None if m is None else m.cov)
+            st = self._state(tr)
+            tr.history.append(st)
+            changed.append(st)
+        for b in births:
+            tr = _Track(self._next_id)
+            self._next_id += 1
+            self.tracks[tr.track_id] = tr
+            self._add(tr, scan, objs[b], cents[b], times[b])
+            tr.state = self._birth(cents[b], times[b])
+            st = self._state(tr)
+            tr.history.append(st)
+            changed.append(st)
         for tid in list(self.tracks):
             tr = self.tracks[tid]
             if scan.scan - tr.last_scan > cfg.max_missed:
@@ -229,10 +366,20 @@ class Tracker:
                 changed.append(self._state(tr, alive=False))
         return changed
 
+    def _add(self, tr: _Track, scan, idx, c, t) -> None:
+        tr.points.append(scan.points[idx])
+        tr.times.append(scan.t_s[idx])
+        tr.mirrors.append(scan.mirror[idx])
+        tr.truth.append(None if scan.truth_id is None else scan.truth_id[idx])
+        tr.scans.append(scan.scan)
+        tr.centroids.append(np.asarray(c, float))
+        tr.t_centroids.append(float(t))
+        tr.last_scan = scan.scan
+
     def states(self) -> list[TrackState]:
         """Current states of the live tracks."""
         return [self._state(tr) for tr in self.tracks.values()]
 
     def all_tracks(self) -> list:
-        """Live and ended internal tracks (for analysis: points, times, centroids)."""
+        """Live and ended internal tracks (for analysis: points, times, centroids, history)."""
         return list(self.tracks.values()) + self.ended

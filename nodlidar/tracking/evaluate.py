@@ -1,0 +1,263 @@
+"""Evaluation of the live tracker on any scene: per-mover truth, online convergence,
+multi-object metrics, mirrors vs lifted.
+
+Truth comes from the scene itself (:func:`mover_truth`: every mover's trajectory gives its
+ground-plane position and velocity at any time). :func:`run_online` feeds simulated scans,
+one at a time, to a :class:`~nodlidar.tracking.tracker.Tracker` (segmenting online: evidence
+so far only) and keeps what the tracker said after every scan. The metrics only use what the
+live tracker reported at the time (causal):
+
+* **following**: in each scan, the track that took most of a mover's points (simulator truth
+  per beam) follows that mover;
+* **online convergence** of a mover: its estimates are those of the track following it, in
+  the scans where one does (1-based count of those scans, as the paper counts scans with the
+  object); the first count after which every estimate stays within ``V_TOL_M_S`` (0.01 m/s)
+  of the true speed and ``HEADING_TOL_DEG`` (2 deg) of the true heading at the estimate's
+  time; None when the last estimate is not;
+* **identity switches**: how often the track following a mover changes;
+* **purity** of a mover: of the points of the track that followed it longest, the fraction
+  that are the mover's;
+* **GOSPA** (Stone Soup's :class:`~stonesoup.metricgenerator.ospametric.GOSPAMetric`,
+  p = 1, c = ``gospa_c_m``, alpha = 2): per scan, the confirmed tracks' positions against
+  the movers' true positions, averaged over the scans.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import require
+from .segment import SegmentConfig
+from .tracker import Tracker, TrackerConfig
+
+__all__ = ["V_TOL_M_S", "HEADING_TOL_DEG", "mover_truth", "OnlineResult", "run_online",
+           "evaluate", "online_convergence", "compare_mirrors", "comparison_markdown"]
+
+V_TOL_M_S = 0.01
+HEADING_TOL_DEG = 2.0
+
+
+def mover_truth(scene, t_s) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-plane positions and velocities of every mover of ``scene`` at times ``t_s``.
+
+    Returns
+    -------
+    (n_movers, n, 2) positions [m] and (n_movers, n, 2) velocities [m/s]. Velocity by the
+    trajectory's own law (fixed: 0; constant velocity: its vector; back and forth: the
+    current leg's), not by differencing positions.
+    """
+    from ..sim.scene import BackAndForth, ConstantVelocity, Fixed
+
+    t = np.atleast_1d(np.asarray(t_s, float))
+    pos, vel = [], []
+    for m in scene.movers:
+        tr = m.trajectory
+        pos.append(np.asarray(tr.position(t))[:, :2])
+        if isinstance(tr, BackAndForth):
+            vel.append(np.asarray(tr.velocity(t))[:, :2])
+        elif isinstance(tr, ConstantVelocity):
+            vel.append(np.broadcast_to(np.asarray(tr.velocity_m_s)[:2], (len(t), 2)).copy())
+        else:
+            require(isinstance(tr, Fixed), "trajectory", type(tr).__name__,
+                    "Fixed, ConstantVelocity or BackAndForth")
+            vel.append(np.zeros((len(t), 2)))
+    shape = (len(scene.movers), len(t), 2)
+    return np.asarray(pos).reshape(shape), np.asarray(vel).reshape(shape)
+
+
+@dataclass
+class OnlineResult:
+    """What the live tracker reported, scan by scan.
+
+    ``records``: one dict per track update (scan, track, t_s, x_m, y_m, v_m_s, heading_rad,
+    confirmed, counts: {truth id: points}). ``confirmed``: per scan, the confirmed live
+    tracks' (t_s, x, y). ``update_s``: wall time of each ``Tracker.update`` [s].
+    """
+
+    scene: object
+    mirrors_deployed: bool
+    entropy: str
+    seed: int
+    n_scans: int
+    records: list[dict] = field(default_factory=list)
+    confirmed: list[list[tuple[float, float, float]]] = field(default_factory=list)
+    scan_t_s: list[float] = field(default_factory=list)
+    update_s: list[float] = field(default_factory=list)
+
+
+def run_online(design, scene, n_scans: int, *, mirrors_deployed: bool = True, seed: int = 0,
+               entropy: str = "renyi", noise: bool = True, tracker: TrackerConfig | None = None,
+               segment: SegmentConfig | None = None, simulator=None,
+               perturbations=None) -> OnlineResult:
+    """Simulate ``scene`` and run the tracker online on it (module docstring)."""
+    import dataclasses
+    import time
+
+    from ..sim.scene import load_scene
+    from .simdata import simulate_scans
+
+    sc = load_scene(scene)
+    cfg = dataclasses.replace(tracker or TrackerConfig(), entropy=entropy)
+    scans = simulate_scans(design, n_scans, mirrors_deployed=mirrors_deployed, scene=sc,
+                           perturbations=perturbations, noise=noise, seed=seed,
+                           simulator=simulator)
+    trk = Tracker(cfg, segment, design.lidar.range_sigma_m)
+    res = OnlineResult(sc, mirrors_deployed, entropy, seed, n_scans)
+    for s in scans:
+        t0 = time.perf_counter()
+        changed = trk.update(s)
+        res.update_s.append(time.perf_counter() - t0)
+        res.scan_t_s.append(s.t_mid_s)
+        for st in changed:
+            if not st.alive:
+                continue
+            tr = trk.tracks[st.track_id]
+            ids, cnt = (np.unique(tr.truth[-1], return_counts=True) if tr.truth[-1] is not None
+                        else (np.zeros(0, int), np.zeros(0, int)))
+            res.records.append({"scan": s.scan, "track": st.track_id, "t_s": st.t_s,
+                                "x_m": st.x_m, "y_m": st.y_m, "v_m_s": st.v_m_s,
+                                "heading_rad": st.heading_rad, "confirmed": st.confirmed,
+                                "counts": dict(zip(ids.tolist(), cnt.tolist()))})
+        res.confirmed.append([(st.t_s, st.x_m, st.y_m) for st in trk.states() if st.confirmed])
+    return res
+
+
+def online_convergence(v: np.ndarray, h_err_deg: np.ndarray) -> int | None:
+    """First 1-based index after which every ``|v| <= V_TOL_M_S`` and ``|h_err| <=
+    HEADING_TOL_DEG`` (``v``: speed errors [m/s]; NaN = no estimate, not within)."""
+    ok = (np.abs(np.asarray(v, float)) <= V_TOL_M_S) & \
+        (np.abs(np.asarray(h_err_deg, float)) <= HEADING_TOL_DEG)
+    if not len(ok) or not ok[-1]:
+        return None
+    bad = np.flatnonzero(~ok)
+    return int(bad[-1] + 2) if len(bad) else 1
+
+
+def _gospa(res: OnlineResult, c_m: float) -> float:
+    from stonesoup.measures import Euclidean
+    from stonesoup.metricgenerator.ospametric import GOSPAMetric
+    from stonesoup.types.state import State
+
+    from .tracker import _stamp
+
+    metric = GOSPAMetric(p=1, c=c_m, measure=Euclidean(mapping=(0, 1)))
+    out = []
+    for t, conf in zip(res.scan_t_s, res.confirmed):
+        pos, _ = mover_truth(res.scene, [t])
+        stamp = _stamp(t)
+        truth = [State(p[0].reshape(2, 1), timestamp=stamp) for p in pos]
+        est = [State(np.array([[x], [y]]), timestamp=stamp) for _, x, y in conf]
+        if not truth and not est:
+            continue
+        out.append(metric.compute_gospa_metric(est, truth)[0].value["distance"])
+    return float(np.mean(out)) if out else float("nan")
+
+
+def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
+    """Metrics of one online run (module docstring): per mover, and GOSPA."""
+    movers = []
+    for k in range(len(res.scene.movers)):
+        oid = 1 + k
+        # per scan, the track that took most of this mover's points
+        best: dict[int, dict] = {}
+        for r in res.records:
+            n = r["counts"].get(oid, 0)
+            if n and (r["scan"] not in best or n > best[r["scan"]]["counts"].get(oid, 0)):
+                best[r["scan"]] = r
+        seq = [best[s] for s in sorted(best)]
+        tracks = [r["track"] for r in seq]
+        switches = int(sum(a != b for a, b in zip(tracks, tracks[1:])))
+        row: dict = {"mover": res.scene.movers[k].name, "scans_followed": len(seq),
+                     "tracks": sorted(set(tracks)), "id_switches": switches,
+                     "purity": None, "conv": None, "final_err_v_m_s": None,
+                     "final_err_heading_deg": None}
+        if seq:
+            main = max(set(tracks), key=tracks.count)
+            tot = own = 0
+            for r in res.records:
+                if r["track"] == main:
+                    tot += sum(r["counts"].values())
+                    own += r["counts"].get(oid, 0)
+            row["purity"] = round(own / max(tot, 1), 4)
+            t = np.array([r["t_s"] for r in seq])
+            _, vel = mover_truth(res.scene, t)
+            vt = vel[k]
+            v = np.array([r["v_m_s"] for r in seq])
+            h = np.array([r["heading_rad"] for r in seq])
+            ev = v - np.hypot(vt[:, 0], vt[:, 1])
+            eh = (np.degrees(h - np.arctan2(vt[:, 1], vt[:, 0])) + 180.0) % 360.0 - 180.0
+            row["conv"] = online_convergence(ev, eh)
+            if np.isfinite(ev[-1]):
+                row["final_err_v_m_s"] = round(float(ev[-1]), 4)
+                row["final_err_heading_deg"] = round(float(eh[-1]), 3)
+        movers.append(row)
+    upd = np.asarray(res.update_s) * 1e3
+    return {"config": "mirrors" if res.mirrors_deployed else "lifted", "entropy": res.entropy,
+            "seed": res.seed, "scans": res.n_scans, "movers": movers,
+            "gospa_m": round(_gospa(res, gospa_c_m), 4),
+            "update_ms_median": round(float(np.median(upd)), 2) if len(upd) else None,
+            "update_ms_max": round(float(np.max(upd)), 2) if len(upd) else None}
+
+
+def compare_mirrors(design, scene, seeds, n_scans: int, entropies=("renyi",), **kw) -> list[dict]:
+    """Mirrors deployed vs lifted on ``scene`` over ``seeds``: one :func:`evaluate` dict per
+    (seed, entropy, configuration) (``kw`` go to :func:`run_online`)."""
+    from ..sim.raycast import SceneSimulator
+    from ..sim.scene import load_scene
+
+    sc = load_scene(scene)
+    sim = SceneSimulator(design, sc, kw.pop("perturbations", None))
+    out = []
+    for seed in seeds:
+        for ent in entropies:
+            for dep in (True, False):
+                out.append(evaluate(run_online(design, sc, n_scans, mirrors_deployed=dep,
+                                               seed=seed, entropy=ent, simulator=sim, **kw)))
+    return out
+
+
+def _median(xs):
+    """Median of convergence scans, None (not converged) counted as later than any."""
+    if not xs:
+        return None
+    v = sorted(np.inf if x is None else x for x in xs)
+    m = float(np.median(v))
+    return None if not np.isfinite(m) else m
+
+
+def summary_rows(results: list[dict]) -> list[dict]:
+    """One row per (entropy, mover): median online convergence over seeds, mirrors vs
+    lifted, converged counts, worst purity, switches, final errors and GOSPA."""
+    keys = sorted({(r["entropy"], i, m["mover"]) for r in results
+                   for i, m in enumerate(r["movers"])})
+    rows = []
+    for ent, i, name in keys:
+        row: dict = {"entropy": ent, "mover": name}
+        for cfg in ("mirrors", "lifted"):
+            rs = [r for r in results if r["entropy"] == ent and r["config"] == cfg]
+            ms = [r["movers"][i] for r in rs]
+            conv = [m["conv"] for m in ms]
+            row[f"conv_{cfg}"] = _median(conv)
+            row[f"converged_{cfg}"] = f"{sum(c is not None for c in conv)}/{len(conv)}"
+            pur = [m["purity"] for m in ms if m["purity"] is not None]
+            row[f"purity_min_{cfg}"] = min(pur) if pur else None
+            row[f"switches_{cfg}"] = int(sum(m["id_switches"] for m in ms))
+            ev = [abs(m["final_err_v_m_s"]) for m in ms if m["final_err_v_m_s"] is not None]
+            eh = [abs(m["final_err_heading_deg"]) for m in ms
+                  if m["final_err_heading_deg"] is not None]
+            row[f"max_err_v_{cfg}"] = max(ev) if ev else None
+            row[f"max_err_heading_{cfg}"] = max(eh) if eh else None
+            g = [r["gospa_m"] for r in rs]
+            row[f"gospa_{cfg}"] = round(float(np.mean(g)), 3) if g else None
+        rows.append(row)
+    return rows
+
+
+def comparison_markdown(rows: list[dict]) -> str:
+    keys = list(rows[0])
+    out = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    out += ["| " + " | ".join("-" if r[k] is None else str(r[k]) for k in keys) + " |"
+            for r in rows]
+    return "\n".join(out)
