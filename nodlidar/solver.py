@@ -409,8 +409,10 @@ def _anchor_oz(theta_z: float, theta_m: float, oa: float, D: float, name: str) -
     if moz >= np.pi - 1e-6 or abs(wrap_angle(theta_z - theta_m)) < abs(theta_z - theta_m) - 1e-9:
         raise InfeasibleDesignError(
             f"mirror {name}: its anchor beam at {np.degrees(theta_z):.2f} deg would have to turn "
-            f"by 180 deg or more to reach its target at {np.degrees(theta_m):.2f} deg; this split "
-            f"cannot be built for this lidar's field of view (try more windows)")
+            f"by {abs(np.degrees(theta_z - theta_m)):.1f} deg to reach its target at "
+            f"{np.degrees(theta_m):.2f} deg, and a flat mirror turns a beam by less than "
+            f"180 deg; this split cannot be built for this lidar's field of view (try more "
+            f"windows, or a front window nearer this side)")
     omz = np.arcsin(oa / D)
     ozm = np.pi - moz - omz
     if ozm <= 1e-6:

@@ -151,6 +151,65 @@ class Verification:
             parts.append(run)
         return "; ".join(f"{k[0]} steps {a}..{b} {k[1]}" for k, a, b in parts)
 
+    def density_per_degree(self, bin_deg: float = 1.0) -> dict[str, list[float]]:
+        """Beams per degree across the front window at D, against the bare lidar.
+
+        Every beam that arrives unblocked is counted where it crosses the arc of radius D
+        (its traced bearing); the gain of a bin is that count over the bare lidar's count
+        of steps in the same bin. Returns ``{"edges_deg": (b+1,), "beams": (b,),
+        "bare": (b,), "gain": (b,)}`` as lists; bins of ``bin_deg`` from the window's
+        first to its last direct beam.
+        """
+        lid = self.design.lidar
+        front = self.design.direct_steps
+        lo, hi = np.degrees(lid.bearing_from_step(np.array([front[0], front[-1]])))
+        nb = max(1, int(np.floor((hi - lo) / bin_deg)))
+        edges = lo + bin_deg * np.arange(nb + 1)
+        ok = ~self.bad
+        b = np.degrees(self.bearing_at_d[ok])
+        beams = np.histogram(b, edges)[0]
+        bare = np.histogram(np.degrees(lid.bearing_from_step(lid.steps)), edges)[0]
+        gain = np.where(bare > 0, beams / np.maximum(bare, 1), np.nan)
+        return {"edges_deg": edges.tolist(), "beams": beams.tolist(), "bare": bare.tolist(),
+                "gain": gain.tolist()}
+
+    def density_gain(self) -> float:
+        """Unblocked beams arriving within the front window at D per direct beam in it."""
+        lid = self.design.lidar
+        front = self.design.direct_steps
+        half = lid.angular_resolution / 2
+        lo, hi = lid.bearing_from_step(np.array([front[0], front[-1]]))
+        b = self.bearing_at_d[~self.bad]
+        return float(np.count_nonzero((b >= lo - half) & (b < hi + half)) / len(front))
+
+    def interleave_pattern(self) -> list[dict]:
+        """Which mirror fills each interleave slot along the front window (from the targets).
+
+        Slot ``q`` of direct step ``g`` is ``g + q / slots_per_step`` of a step. Runs of
+        direct steps with the same pattern are merged: ``[{"steps": [first, last],
+        "slots": ["direct", "L1", "R1"]}, ...]`` (``"-"``: empty slot). The traced
+        bearings' distance from these targets is :attr:`error`.
+        """
+        d = self.design
+        k = d.spec.layout.slots
+        lid = d.lidar
+        front = d.direct_steps
+        table = np.full((len(front), k), "-", dtype=object)
+        table[:, 0] = "direct"
+        for m in d.mirrors:
+            pos = np.round(lid.step_from_bearing(m.target_bearing) * k).astype(int)
+            g, q = np.divmod(pos, k)
+            inside = (g >= front[0]) & (g <= front[-1])
+            table[g[inside] - front[0], q[inside]] = m.name
+        runs: list[dict] = []
+        for g, row in zip(front, table, strict=True):
+            row = [str(x) for x in row]
+            if runs and runs[-1]["slots"] == row and runs[-1]["steps"][1] == g - 1:
+                runs[-1]["steps"][1] = int(g)
+            else:
+                runs.append({"steps": [int(g), int(g)], "slots": row})
+        return runs
+
     def mirror_errors(self, name: str) -> np.ndarray:
         """Bearing errors at D [rad] of one mirror's beams, ordered by step."""
         i = [m.name for m in self.design.mirrors].index(name)

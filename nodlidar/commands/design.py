@@ -71,7 +71,13 @@ def run(args) -> int:
     if alt_refused:
         out["alternative"]["refused"] = alt_refused
     # beams the file gives up (placement.shadowed_steps), described as the trace finds them
-    out["shadowed"] = verify(design).describe_blocked()
+    ver = verify(design)
+    out["shadowed"] = ver.describe_blocked()
+    # what the split buys: beams per degree across the front window at D (traced), and
+    # which mirror fills each interleave slot
+    out["density_gain"] = ver.density_gain()
+    out["density_per_degree"] = ver.density_per_degree()
+    out["interleave"] = ver.interleave_pattern()
     if args.out:
         d = Path(args.out)
         d.mkdir(parents=True, exist_ok=True)
@@ -87,6 +93,10 @@ def run(args) -> int:
           f"k = {spec.layout.windows}, placement = {spec.placement.method}; direct steps "
           f"{out['direct_steps'][0]}..{out['direct_steps'][1]}; every beam ray-traced, {blocked}")
     print(_fmt_table(out["mirrors"]))
+    print(f"density across the front window at D: {out['density_gain']:.3f} x the bare lidar; "
+          "interleave (direct step: slots):")
+    for r in out["interleave"]:
+        print(f"  {r['steps'][0]:>4}..{r['steps'][1]:<4} {' '.join(r['slots'])}")
     print("span = distance between the first and last beam's hit points (the paper's QZ); "
           "len = mirror patch incl. half-step margins;\nrms/max = bearing error against the "
           "interleave target on the arc of radius D (exact ray trace).")
