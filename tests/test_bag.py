@@ -1,12 +1,17 @@
-"""ROS 2 bag recording: round trip through the rosbags reader, kill safety and recovery."""
+"""ROS 2 bag recording (MCAP and sqlite3): round trip through the rosbags reader, kill
+safety and recovery (read-only: into a temporary copy), undecodable frames skipped and
+counted, malformed bags as one-line errors, write errors (disk full) as one line."""
 
 from __future__ import annotations
 
+import json
 import os
+import resource
 import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -16,10 +21,14 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from nodlidar import scip
+from nodlidar.cli import main
 from nodlidar.errors import DesignFileError, NodlidarError
 from nodlidar.lidar import lidar_model
+from nodlidar.paper import PAPER_DESIGN
 from nodlidar.runtime.bag import (
+    RAW_TOPIC,
     BagRecorder,
+    BagWriteError,
     iter_messages,
     read_bag,
     read_recording,
@@ -28,8 +37,11 @@ from nodlidar.runtime.bag import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-DESIGN_TOML = (ROOT / "design" / "urg04lx-paper.toml").read_text()
+DESIGN_TOML = Path(PAPER_DESIGN).read_text()
 URG = lidar_model("URG-04LX")
+STORAGES = ["mcap", "sqlite3"]
+# 2000-01-01T00:00:00Z: stamps must be in this century (not 1970 or session seconds)
+Y2000_NS = 946_684_800 * 10**9
 
 
 def fake_scan(k: int, rng) -> SimpleNamespace:
@@ -44,12 +56,24 @@ def fake_scan(k: int, rng) -> SimpleNamespace:
                            stamp_s=12.0 + 0.1 * k, timestamp_ms=fr.timestamp_ms)
 
 
-def write_bag(path, n_scans: int = 5):
+def recorder(path, storage="mcap", **kw) -> BagRecorder:
+    # the session clock reads 11.9 s when the recording opens (just before the scans)
+    return BagRecorder(path, DESIGN_TOML, extra={"dmin_mm": 20}, storage=storage,
+                       clock=lambda: 11.9, **kw)
+
+
+def write_bag(path, n_scans: int = 5, storage: str = "mcap", corrupt: tuple[int, ...] = ()):
+    """A closed bag of ``n_scans`` fake scans with nod and left-mirror samples covering
+    them; the raw frames of the scans in ``corrupt`` get one byte flipped."""
     rng = np.random.default_rng(0)
     scans = [fake_scan(k, rng) for k in range(n_scans)]
-    t = 12.0 + np.arange(0, 0.1 * n_scans, 0.004)
-    with BagRecorder(path, DESIGN_TOML, extra={"dmin_mm": 20}) as rec:
-        for s in scans:
+    t = 12.0 + np.arange(0, 0.1 * n_scans + 0.1, 0.004)
+    with recorder(path, storage) as rec:
+        for k, s in enumerate(scans):
+            if k in corrupt:
+                raw = bytearray(s.raw)
+                raw[len(raw) // 2] ^= 0x01  # a data byte: the line's checksum fails
+                s = SimpleNamespace(**{**vars(s), "raw": bytes(raw)})
             rec.write_scan(s, URG)
             rec.commit()
         rec.write_samples("nod", t, 0.1 * np.sin(t))
@@ -57,27 +81,47 @@ def write_bag(path, n_scans: int = 5):
     return scans, t
 
 
-def test_round_trip_with_rosbags_reader(tmp_path):
-    scans, t = write_bag(tmp_path / "b")
-    topics = {}
-    for topic, _t, msg in iter_messages(tmp_path / "b"):  # the rosbags reader
+def snapshot(d: Path) -> dict[str, bytes]:
+    return {f.name: f.read_bytes() for f in sorted(d.iterdir())}
+
+
+@pytest.mark.parametrize("storage", STORAGES)
+def test_round_trip_with_rosbags_reader(tmp_path, storage):
+    scans, t = write_bag(tmp_path / "b", storage=storage)
+    assert len(list((tmp_path / "b").glob("*.mcap" if storage == "mcap" else "*.db3"))) == 1
+    topics: dict[str, list] = {}
+    stamps: dict[str, list[int]] = {}
+    for topic, t_ns, msg in iter_messages(tmp_path / "b"):  # the rosbags reader
         topics.setdefault(topic, []).append(msg)
+        stamps.setdefault(topic, []).append(t_ns)
+    n_joint = len(t) + len(t[::10])
     assert {k: len(v) for k, v in topics.items()} == {
-        "/nodlidar/design": 1, "/scan/raw": 5, "/scan": 5, "/joint_states": len(t) + len(t[::10])}
+        "/nodlidar/design": 1, "/robot_description": 1, "/tf_static": 1, "/scan/raw": 5,
+        "/scan": 5, "/nodlidar/points": 5, "/joint_states": n_joint, "/tf": n_joint}
+    for topic, ns in stamps.items():
+        assert ns[0] > Y2000_NS and ns == sorted(ns), topic
+    header = json.loads(topics["/nodlidar/design"][0].data)
+    off = header["epoch_offset_ns"]
+    assert header["format"] == 2 and header["storage"] == storage
     ls = topics["/scan"][2]
     # LaserScan: float32 metres (exact mm -> float32: relative 6e-8), NaN for error codes
     assert_allclose(ls.ranges, scans[2].ranges_m, rtol=1e-7, equal_nan=True)
     assert_allclose(ls.angle_min, URG.bearing_from_step(URG.step_min), rtol=1e-6)
     assert_allclose(ls.angle_increment, 2 * np.pi / 1024, rtol=1e-6)
-    assert ls.header.stamp.sec == 12 and ls.header.stamp.nanosec == 200_000_000
+    # header.stamp = the first ray: step-0 time + step_min step periods (integer ns)
+    first = int(round(URG.beam_time_s(12.2, URG.step_min) * 1e9)) + off
+    assert ls.header.stamp.sec * 10**9 + ls.header.stamp.nanosec == first
+    assert topics["/nodlidar/points"][2].header.stamp == ls.header.stamp
 
     back = read_bag(tmp_path / "b")
     assert not back.recovered and len(back.scans) == 5 and back.laser_scans == 5
+    assert back.clouds == 5 and back.skipped == {} and back.storage == storage
     for a, b in zip(scans, back.scans):
         assert_array_equal(b.ranges_mm, a.ranges_mm)  # the raw frames decode exactly
         assert b.raw == a.raw
-        assert abs(b.stamp_s - a.stamp_s) <= 0.5e-9  # ns stamps
-    assert_allclose(back.joints["nod"][0], t, atol=0.5e-9, rtol=0)
+        # epoch ns minus the integer offset: the session clock back to the ns rounding
+        assert abs(b.stamp_s - a.stamp_s) <= 0.5e-9 + 1e-15 * a.stamp_s
+    assert_allclose(back.joints["nod"][0], t, atol=1e-9, rtol=0)
     assert_array_equal(back.joints["nod"][1], 0.1 * np.sin(t))  # float64 positions exact
     assert set(back.joints) == {"nod", "mirror_left"}
 
@@ -86,50 +130,69 @@ def test_existing_directory_refused(tmp_path):
     (tmp_path / "b").mkdir()
     with pytest.raises(NodlidarError, match="exists"):
         BagRecorder(tmp_path / "b", DESIGN_TOML).open()
+    with pytest.raises(NodlidarError, match="storage"):
+        BagRecorder(tmp_path / "c", DESIGN_TOML, storage="rosbag1")
 
 
-def test_unclosed_bag_recovered(tmp_path):
-    """A recorder that was never closed (as after SIGKILL): no metadata.yaml; recovery
-    writes it, the reader opens the bag, every committed scan is there, the uncommitted
-    one is not."""
+@pytest.mark.parametrize("storage", STORAGES)
+def test_unclosed_bag_read_without_writing_into_it(tmp_path, storage):
+    """A recorder that was never closed (as after SIGKILL): no metadata.yaml. read_bag
+    reads every committed scan (not the uncommitted one) through a repaired temporary
+    copy and leaves the bag byte for byte as it was (read-only media); recover_bag
+    repairs in place on request."""
     rng = np.random.default_rng(1)
-    rec = BagRecorder(tmp_path / "b", DESIGN_TOML, extra={"dmin_mm": 20}).open()
+    rec = recorder(tmp_path / "b", storage).open()
+    t = 12.0 + np.arange(0, 0.6, 0.004)
     for k in range(4):
         rec.write_scan(fake_scan(k, rng), URG)
+        rec.write_samples("nod", t[(t >= 12 + 0.1 * k) & (t < 12.1 + 0.1 * k)], np.zeros(25))
         rec.commit()
     rec.write_scan(fake_scan(4, rng), URG)  # in flight: not committed
     assert not (tmp_path / "b" / "metadata.yaml").exists()
-    # the process "dies" here: the connection is never committed or closed
+    # the process "dies" here: nothing is committed, flushed or closed any more
     shutil.copytree(tmp_path / "b", tmp_path / "copy")  # the files as a kill leaves them
+    before = snapshot(tmp_path / "copy")
+    os.chmod(tmp_path / "copy", 0o555)
+    try:
+        back = read_bag(tmp_path / "copy")
+    finally:
+        os.chmod(tmp_path / "copy", 0o755)
+    assert back.recovered and len(back.scans) == 4
+    assert snapshot(tmp_path / "copy") == before  # nothing written into the bag
     assert recover_bag(tmp_path / "copy") is True
     assert recover_bag(tmp_path / "copy") is False  # idempotent
-    back = read_bag(tmp_path / "copy")
-    assert len(back.scans) == 4
-    rec._w.storage.conn.close()
+    assert (tmp_path / "copy" / "metadata.yaml").exists()
+    again = read_bag(tmp_path / "copy")
+    assert not again.recovered and len(again.scans) == 4
+    rec.abort()
 
 
-def test_mcap_without_footer_is_unreadable(tmp_path):
-    """Why sqlite3: rosbags' MCAP writer keeps index and footer until close(); its reader
-    rejects a file cut before them (what SIGKILL leaves)."""
-    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
+def test_mcap_cut_short_is_repaired_for_every_reader(tmp_path):
+    """Why the repair: an MCAP file cut short (no footer, as a kill leaves it) is refused
+    by rosbags ("File end magic is invalid"); after recover_bag both rosbags and the
+    independent mcap reader read every message before the cut, whatever byte it is at
+    (a cut in the summary at the end loses no message)."""
+    from mcap.reader import make_reader
+    from rosbags.rosbag2 import Reader
 
-    ts = get_typestore(Stores.ROS2_HUMBLE)
-    w = Writer(tmp_path / "m", version=9, storage_plugin=StoragePlugin.MCAP)
-    w.open()
-    c = w.add_connection("/x", "std_msgs/msg/String", typestore=ts)
-    for i in range(200):
-        w.write(c, i + 1, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="x" * 3000),
-                                           "std_msgs/msg/String"))
-    mcap = next((tmp_path / "m").glob("*.mcap"))
-    cut = tmp_path / "cut.mcap"
-    cut.write_bytes(mcap.read_bytes())  # what is on disk before close()
-    # 200 x 3 kB is still in the writer's chunk buffer ("seems to be empty"); a bigger
-    # recording killed later has chunks but no footer ("File end magic is invalid")
-    with pytest.raises(Exception, match="empty|magic"):
-        with Reader(cut) as r:
-            list(r.messages())
-    w.close()
+    _, _ = write_bag(tmp_path / "b", n_scans=6)
+    full = next((tmp_path / "b").glob("*.mcap")).read_bytes()
+    with Reader(tmp_path / "b") as r:
+        total = r.message_count
+    for cut in (len(full) // 3, len(full) // 2, len(full) - 200):
+        d = tmp_path / f"cut{cut}"
+        d.mkdir()
+        (d / "cut.mcap").write_bytes(full[:cut])
+        with pytest.raises(Exception, match="magic|empty"):
+            with Reader(d / "cut.mcap") as r:
+                list(r.messages())
+        assert recover_bag(d) is True
+        with Reader(d) as r:
+            n_rosbags = sum(1 for _ in r.messages())
+        with (d / "cut.mcap").open("rb") as fh:
+            n_mcap = sum(1 for _ in make_reader(fh).iter_messages())
+        assert 0 < n_rosbags == n_mcap
+        assert (n_rosbags == total) if cut == len(full) - 200 else (n_rosbags < total)
 
 
 def test_recover_bad_paths(tmp_path):
@@ -138,13 +201,13 @@ def test_recover_bad_paths(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(DesignFileError, match="cannot recover"):
         recover_bag(tmp_path / "empty")
-    with BagRecorder(tmp_path / "nodesign", DESIGN_TOML) as rec:
+    with recorder(tmp_path / "nodesign", clouds=False) as rec:
         pass
     with pytest.raises(DesignFileError, match="no scans"):
         replay_bag(tmp_path / "nodesign")
     assert rec.scans == 0
     rng = np.random.default_rng(2)
-    with BagRecorder(tmp_path / "nonod", DESIGN_TOML, extra={"dmin_mm": 20}) as rec:
+    with recorder(tmp_path / "nonod") as rec:
         rec.write_scan(fake_scan(0, rng), URG)
         rec.write_samples("mirror_left", np.array([12.0]), np.array([0.0]))
     with pytest.raises(DesignFileError, match="no nod servo samples"):
@@ -156,6 +219,128 @@ def test_recover_bad_paths(tmp_path):
     assert len(good.scans) == 5 and "nod" in good.joints
 
 
+@pytest.mark.parametrize("storage", STORAGES)
+def test_bad_frame_is_skipped_and_counted(tmp_path, storage, capsys):
+    """One corrupted raw frame no longer makes the bag unreadable: the other scans are
+    read, the bad one counted; replay warns (exit 0), --strict refuses (exit 2)."""
+    scans, _ = write_bag(tmp_path / "b", n_scans=6, storage=storage, corrupt=(2,))
+    back = read_bag(tmp_path / "b")
+    assert back.skipped == {RAW_TOPIC: 1}
+    assert [s.raw for s in back.scans] == [s.raw for k, s in enumerate(scans) if k != 2]
+    assert main(["replay", str(tmp_path / "b")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: skipped 1 undecodable messages (/scan/raw: 1)" in err
+    assert main(["replay", str(tmp_path / "b"), "--strict"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot be decoded" in err[0]
+    assert main(["replay", str(tmp_path / "b"), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["skipped"] == {RAW_TOPIC: 1} and out["scans"] == 5 and out["storage"] == storage
+
+
+def _raw_bag(path: Path, design_payload: str, storage: str = "mcap") -> Path:
+    """A bag whose design message carries ``design_payload`` verbatim (rosbags writer)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with Writer(path, version=9, storage_plugin=plugin) as w:
+        c = w.add_connection("/nodlidar/design", "std_msgs/msg/String", typestore=ts)
+        w.write(c, Y2000_NS + 1, ts.serialize_cdr(ts.types["std_msgs/msg/String"](
+            data=design_payload), "std_msgs/msg/String"))
+    return path
+
+
+def _good_header() -> dict:
+    return {"format": 2, "design_toml": DESIGN_TOML, "calibration_toml": None,
+            "lift_left": {"deployed_rad": 0.0, "lifted_rad": 1.5, "rate_rad_s": 1.0},
+            "lift_right": {"deployed_rad": 0.0, "lifted_rad": 1.5, "rate_rad_s": 1.0},
+            "dmin_mm": 20, "epoch_offset_ns": 0}
+
+
+def _edit_header(**kw) -> str:
+    h = _good_header()
+    h.update(kw)
+    return json.dumps(h)
+
+
+MALFORMED = {
+    "metadata not yaml": lambda d: (d / "metadata.yaml").write_text("{: [\n"),
+    "metadata no version": lambda d: (d / "metadata.yaml").write_text(
+        (d / "metadata.yaml").read_text().replace("version: 9", "versio: 9")),
+    "metadata version 99": lambda d: (d / "metadata.yaml").write_text(
+        (d / "metadata.yaml").read_text().replace("version: 9", "version: 99")),
+    "metadata storage": lambda d: (d / "metadata.yaml").write_text(
+        (d / "metadata.yaml").read_text().replace("storage_identifier: mcap",
+                                                  "storage_identifier: rosbag1")),
+    "metadata empty": lambda d: (d / "metadata.yaml").write_text(""),
+    "storage file missing": lambda d: next(d.glob("*.mcap")).unlink(),
+    "storage file garbage": lambda d: next(d.glob("*.mcap")).write_bytes(b"\x00" * 100),
+    "storage file truncated": lambda d: next(d.glob("*.mcap")).write_bytes(
+        next(d.glob("*.mcap")).read_bytes()[:-40]),
+}
+MALFORMED_HEADERS = {
+    "not json": "{design",
+    "json list": "[1, 2]",
+    "no design": json.dumps({k: v for k, v in _good_header().items() if k != "design_toml"}),
+    "format 99": _edit_header(format=99),
+    "lift not numbers": _edit_header(lift_left={"deployed_rad": "0", "lifted_rad": 1.5,
+                                                "rate_rad_s": 1.0}),
+    "lift equal": _edit_header(lift_right={"deployed_rad": 0.0, "lifted_rad": 0.0,
+                                           "rate_rad_s": 1.0}),
+    "dmin text": _edit_header(dmin_mm="20"),
+    "offset negative": _edit_header(epoch_offset_ns=-1),
+    "calibration number": _edit_header(calibration_toml=3),
+    "design not toml": _edit_header(design_toml="[layout\nx = "),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(MALFORMED))
+def test_malformed_bag_is_one_line(tmp_path, capsys, kind):
+    write_bag(tmp_path / "b", n_scans=2)
+    MALFORMED[kind](tmp_path / "b")
+    with pytest.raises(DesignFileError):
+        read_bag(tmp_path / "b")
+    assert main(["replay", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("kind", sorted(MALFORMED_HEADERS))
+def test_malformed_design_message_is_one_line(tmp_path, capsys, kind):
+    _raw_bag(tmp_path / "b", MALFORMED_HEADERS[kind])
+    assert main(["replay", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    # the same bag with a good header gets past the header (and has no scans)
+    _raw_bag(tmp_path / "ok", json.dumps(_good_header()))
+    with pytest.raises(DesignFileError, match="no scans"):
+        replay_bag(tmp_path / "ok")
+
+
+def test_write_error_keeps_committed_scans(tmp_path):
+    """Any storage error while writing (here: the MCAP file handle fails as on a full
+    disk) is a BagWriteError naming the committed scans; those stay readable."""
+    rng = np.random.default_rng(3)
+    rec = recorder(tmp_path / "b", "mcap").open()
+    t = 12.0 + np.arange(0, 0.5, 0.004)
+    for k in range(3):
+        rec.write_scan(fake_scan(k, rng), URG)
+        rec.write_samples("nod", t[(t >= 12 + 0.1 * k) & (t < 12.1 + 0.1 * k)], np.zeros(25))
+        rec.commit()
+
+    def full(*_a):
+        raise OSError(28, "No space left on device")
+
+    rec._w.storage.bio.write = full
+    with pytest.raises(BagWriteError, match="after 3 committed scans.*No space left"):
+        rec.write_scan(fake_scan(3, rng), URG)
+        rec.commit()
+    back = read_bag(tmp_path / "b")
+    assert back.recovered and len(back.scans) == 3
+
+
 def _wait_for(cond, timeout_s: float) -> bool:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
@@ -165,28 +350,33 @@ def _wait_for(cond, timeout_s: float) -> bool:
     return False
 
 
-@pytest.mark.parametrize("kill_after", [20])
-def test_sigkill_keeps_every_scan_before_the_last(tmp_path, kill_after):
+def _pump(proc, lines: list[str]) -> threading.Thread:
+    def pump():
+        for line in proc.stderr:
+            lines.append(line)
+
+    th = threading.Thread(target=pump, daemon=True)
+    th.start()
+    return th
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("storage", STORAGES)
+def test_sigkill_keeps_every_scan_before_the_last(tmp_path, storage):
     """`nodlidar record` as a subprocess against the simulated sensor, SIGKILLed after it
-    reported N scans: the bag opens (after recovery) with the rosbags reader with >= N-1
-    scans, every one decoding to a full scan."""
+    reported N scans: the bag reads (through a repaired copy) with >= N scans, every one
+    decoding to a full scan, and replays."""
+    kill_after = 20
     out = tmp_path / "bag"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(
         [sys.executable, "-m", "nodlidar.cli", "record", "--out", str(out), "--scans", "100000",
-         "--sim-rate", "5", "--sim-transport", "tcp"],
+         "--sim-rate", "5", "--sim-transport", "tcp", "--storage", storage],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
     lines: list[str] = []
     try:
-        import threading
-
-        def pump():
-            for line in proc.stderr:
-                lines.append(line)
-
-        th = threading.Thread(target=pump, daemon=True)
-        th.start()
-        ok = _wait_for(lambda: any(f"recorded {kill_after} scans" in ln for ln in lines), 60)
+        _pump(proc, lines)
+        ok = _wait_for(lambda: any(f"recorded {kill_after} scans" in ln for ln in lines), 120)
         assert ok, "".join(lines)
     finally:
         proc.send_signal(signal.SIGKILL)
@@ -194,11 +384,39 @@ def test_sigkill_keeps_every_scan_before_the_last(tmp_path, kill_after):
     assert proc.returncode == -signal.SIGKILL
     assert not (out / "metadata.yaml").exists()  # it never closed
     back = read_bag(out)
-    assert back.recovered
+    assert back.recovered and not (out / "metadata.yaml").exists()
     # 'recorded N scans' is printed after scan N was committed, so all N are there (the
     # issue asks for >= N - 1: every scan before the one in flight)
     assert len(back.scans) >= kill_after
     for s in back.scans:
         assert len(s.ranges_mm) == URG.n_steps
+    _, cloud = replay_bag(out)
+    assert len(cloud) > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("storage", STORAGES)
+def test_disk_full_while_recording_is_one_line(tmp_path, storage):
+    """`nodlidar record` with a 1.5 MB file-size limit (the kernel refuses writes past it,
+    EFBIG, as a full disk refuses them): one line on stderr, exit 1, no traceback; the
+    scans committed before are kept and replay reads them."""
+    out = tmp_path / "bag"
+    limit = 1_500_000
+
+    def cap_size():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails, no signal
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "nodlidar.cli", "record", "--out", str(out), "--scans", "100000",
+         "--sim-rate", "5", "--sim-transport", "tcp", "--storage", storage],
+        capture_output=True, text=True, cwd=ROOT, preexec_fn=cap_size, timeout=300)
+    err = [ln for ln in proc.stderr.splitlines() if ln.startswith("nodlidar record:")]
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr and len(err) == 1, proc.stderr
+    assert "committed scans" in err[0]
+    n = int(err[0].split("failed after ")[1].split()[0])
+    back = read_bag(out)
+    assert n > 0 and len(back.scans) >= n
     _, cloud = replay_bag(out)
     assert len(cloud) > 0

@@ -1,0 +1,224 @@
+"""ROS 2 messages of a recording: PointCloud2, TF and the head's URDF.
+
+Frames (docs/conventions.md; the names are what ROS tools see):
+
+``nodlidar_base``
+    The sensor (base) frame: fixed to the robot, equal to the head frame at nod = 0.
+    Every PointCloud2 is in this frame.
+``nodlidar_head``
+    The nod joint's child: origin at ``nod.pivot_m``, pitched by the nod angle about y.
+    ``/tf`` carries ``nodlidar_base -> nodlidar_head`` at every nod servo sample.
+``laser``
+    The head frame (origin at the lidar's optical centre, x forward, z up):
+    ``nodlidar_head -> laser`` is the fixed offset ``-pivot`` (``/tf_static``). A LaserScan
+    in ``laser`` is right for the direct beams; reflected beams are only right in the
+    PointCloud2.
+``mirror_<name>``
+    One per mirror, on a revolute joint about its hinge axis (the line
+    ``origin + hinge_z*up + s*along``, right hand about ``along``): origin on the hinge
+    line, x = ``along``, z = ``up``. The joint angle is 0 deployed and
+    ``-sign(hinge_z) * lift_angle`` lifted (docs/conventions.md, "Mirror lift"); ``/tf``
+    carries it at every lift-servo sample.
+
+Transforms are ``parent -> child`` as ROS has them: the child's pose in the parent, i.e.
+``p_parent = R p_child + t`` (the ``A2B`` naming of docs/conventions.md with A = parent).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+__all__ = ["BASE_FRAME", "HEAD_FRAME", "LASER_FRAME", "mirror_frame", "POINTFIELD_TYPES",
+           "pointcloud2", "pointcloud2_array", "stamp", "quaternion", "quat_axis", "quat_mul",
+           "rot_y", "rot_x",
+           "nod_transform", "mirror_joint_frames", "mirror_joint_angle", "static_transforms",
+           "tf_message", "urdf"]
+
+BASE_FRAME = "nodlidar_base"
+HEAD_FRAME = "nodlidar_head"
+LASER_FRAME = "laser"
+
+#: numpy dtype string -> sensor_msgs/PointField datatype constant
+POINTFIELD_TYPES = {"|i1": 1, "|u1": 2, "<i2": 3, "<u2": 4, "<i4": 5, "<u4": 6, "<f4": 7, "<f8": 8}
+_DTYPE_OF = {v: k for k, v in POINTFIELD_TYPES.items()}
+
+
+def mirror_frame(name: str) -> str:
+    return f"mirror_{name}"
+
+
+def stamp(ts, ns: int):
+    """builtin_interfaces/Time of ``ns`` [ns since the epoch]."""
+    return ts.types["builtin_interfaces/msg/Time"](sec=int(ns) // 1_000_000_000,
+                                                    nanosec=int(ns) % 1_000_000_000)
+
+
+def rot_y(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_x(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def quaternion(R) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation matrix (a 4-tuple is taken as a quaternion already)."""
+    if len(R) == 4:
+        return tuple(float(v) for v in R)  # type: ignore[return-value]
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, float)).as_quat()
+    return float(x), float(y), float(z), float(w)
+
+
+def quat_axis(axis: int, a: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation by ``a`` [rad] about axis 0 (x), 1 (y) or 2 (z)."""
+    q = [0.0, 0.0, 0.0, math.cos(a / 2)]
+    q[axis] = math.sin(a / 2)
+    return q[0], q[1], q[2], q[3]
+
+
+def quat_mul(p, q) -> tuple[float, float, float, float]:
+    """Hamilton product ``p q`` of (x, y, z, w) quaternions (rotation q first, then p)."""
+    px, py, pz, pw = p
+    qx, qy, qz, qw = q
+    return (pw * qx + px * qw + py * qz - pz * qy, pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw, pw * qw - px * qx - py * qy - pz * qz)
+
+
+# -- PointCloud2 ---------------------------------------------------------------------------
+def pointcloud2(ts, points: np.ndarray, frame_id: str, stamp_ns: int):
+    """sensor_msgs/PointCloud2 of a packed structured array ``(n,)`` (one row, dense).
+
+    Field types must be in :data:`POINTFIELD_TYPES`; field order and offsets are the
+    array's (:func:`nodlidar.runtime.cloud.structured` gives the file layout).
+    """
+    dt = points.dtype
+    PointField = ts.types["sensor_msgs/msg/PointField"]
+    fields = [PointField(name=name, offset=int(dt.fields[name][1]),
+                         datatype=POINTFIELD_TYPES[dt[name].str], count=1) for name in dt.names]
+    data = np.frombuffer(np.ascontiguousarray(points).tobytes(), dtype=np.uint8)
+    return ts.types["sensor_msgs/msg/PointCloud2"](
+        header=ts.types["std_msgs/msg/Header"](stamp=stamp(ts, stamp_ns), frame_id=frame_id),
+        height=1, width=len(points), fields=fields, is_bigendian=False,
+        point_step=dt.itemsize, row_step=dt.itemsize * len(points), data=data, is_dense=True)
+
+
+def pointcloud2_array(msg) -> np.ndarray:
+    """The structured array ``(height * width,)`` of a PointCloud2 (any reader's message
+    object with the standard attributes)."""
+    dt = np.dtype({"names": [f.name for f in msg.fields],
+                   "formats": [np.dtype(_DTYPE_OF[f.datatype]).newbyteorder(
+                       ">" if msg.is_bigendian else "<") for f in msg.fields],
+                   "offsets": [f.offset for f in msg.fields], "itemsize": msg.point_step})
+    return np.frombuffer(bytes(msg.data), dtype=dt, count=msg.height * msg.width)
+
+
+# -- transforms ------------------------------------------------------------------------------
+def nod_transform(nod_rad: float, pivot_m: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """``nodlidar_base -> nodlidar_head``: (R (3, 3), t (3,) [m]) at pitch ``nod_rad``."""
+    return rot_y(nod_rad), np.asarray(pivot_m, dtype=float)
+
+
+def mirror_joint_frames(patches) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """``laser -> mirror_<name>`` at joint angle 0 for each :class:`MirrorPatch`:
+    (name, R (3, 3), t (3,) [m]); columns of R are along, up x along, up."""
+    out = []
+    for m in patches:
+        along, up = m.along_, m.up_
+        R = np.column_stack([along, np.cross(up, along), up])
+        out.append((m.name, R, m.origin_ + m.hinge_z * up))
+    return out
+
+
+def mirror_joint_angle(servo_rad, profile, hinge_z_m: float, lift_angle_rad: float) -> np.ndarray:
+    """Mirror joint angle [rad] (0 deployed) from lift-servo angles [rad]: the fraction of
+    the way from ``profile.deployed_rad`` to ``profile.lifted_rad`` times the lift
+    rotation ``-sign(hinge_z) * lift_angle``."""
+    frac = (np.asarray(servo_rad, float) - profile.deployed_rad) / (
+        profile.lifted_rad - profile.deployed_rad)
+    return -math.copysign(1.0, hinge_z_m) * lift_angle_rad * frac
+
+
+def static_transforms(pivot_m: Sequence[float]) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+    """The fixed frames: (parent, child, R, t) for ``/tf_static``."""
+    return [(HEAD_FRAME, LASER_FRAME, np.eye(3), -np.asarray(pivot_m, dtype=float))]
+
+
+def tf_message(ts, transforms: Sequence[tuple[int, str, str, np.ndarray, np.ndarray]]):
+    """tf2_msgs/TFMessage of (stamp_ns, parent, child, R, t) tuples (R a 3x3 matrix or an
+    (x, y, z, w) quaternion, t [m])."""
+    T = ts.types
+    out = []
+    for ns, parent, child, R, t in transforms:
+        x, y, z, w = quaternion(R)
+        out.append(T["geometry_msgs/msg/TransformStamped"](
+            header=T["std_msgs/msg/Header"](stamp=stamp(ts, ns), frame_id=parent),
+            child_frame_id=child,
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](x=float(t[0]), y=float(t[1]),
+                                                           z=float(t[2])),
+                rotation=T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w))))
+    return T["tf2_msgs/msg/TFMessage"](transforms=out)
+
+
+# -- URDF ---------------------------------------------------------------------------------------
+def _origin(R: np.ndarray, t: np.ndarray) -> str:
+    from scipy.spatial.transform import Rotation
+
+    # URDF rpy: roll about X, pitch about Y, yaw about Z, all fixed axes: R = Rz Ry Rx
+    r, p, y = Rotation.from_matrix(np.asarray(R, float)).as_euler("xyz")
+    return (f'<origin xyz="{t[0]:.9g} {t[1]:.9g} {t[2]:.9g}" '
+            f'rpy="{r:.12g} {p:.12g} {y:.12g}"/>')
+
+
+def urdf(design, patches=None, *, name: str | None = None) -> str:
+    """The head as URDF: ``nodlidar_base``, the nod joint (revolute about y through the
+    pivot, the design's pitch limits), ``laser`` and one revolute joint per mirror about
+    its hinge axis with the glass as a box (length x thickness x height from the solved
+    patches; ``patches`` default: the design's nominal ones).
+    """
+    spec = design.spec
+    patches = list(patches if patches is not None else design.patches())
+    pivot = np.asarray(spec.nod.pivot_m, float)
+    lift = spec.mirror.lift_angle_rad
+    lo, hi = sorted((0.0, -math.copysign(1.0, spec.mirror.hinge_z_m) * lift))
+    thick = spec.mirror.glass_thickness_m
+    robot = name or f"nodlidar_{spec.name}"
+    x = [f"<robot name={quoteattr(robot)}>",
+         '  <material name="glass"><color rgba="0.6 0.8 1.0 0.5"/></material>',
+         '  <material name="lidar"><color rgba="0.2 0.2 0.2 1.0"/></material>',
+         f'  <link name="{BASE_FRAME}"/>',
+         f'  <joint name="nod" type="revolute">\n    <parent link="{BASE_FRAME}"/>'
+         f'\n    <child link="{HEAD_FRAME}"/>\n    {_origin(np.eye(3), pivot)}'
+         f'\n    <axis xyz="0 1 0"/>\n    <limit lower="{spec.nod.pitch_min_rad:.12g}" '
+         f'upper="{spec.nod.pitch_max_rad:.12g}" effort="10" '
+         f'velocity="{spec.nod.rate_rad_s:.12g}"/>\n  </joint>',
+         f'  <link name="{HEAD_FRAME}"/>',
+         f'  <joint name="laser_mount" type="fixed">\n    <parent link="{HEAD_FRAME}"/>'
+         f'\n    <child link="{LASER_FRAME}"/>\n    {_origin(np.eye(3), -pivot)}\n  </joint>',
+         # the URG-04LX body: a 50 x 50 x 70 mm box whose scan plane is z = 0
+         f'  <link name="{LASER_FRAME}">\n    <visual>\n      '
+         f'{_origin(np.eye(3), np.array([0.0, 0.0, -0.035]))}\n      <geometry><box size="0.05 '
+         '0.05 0.07"/></geometry>\n      <material name="lidar"/>\n    </visual>\n  </link>']
+    for (mname, R, t), m in zip(mirror_joint_frames(patches), patches):
+        # glass centre in the joint frame: along x, behind the reflecting face (+y is
+        # away from the lidar), z measured from the hinge
+        c = np.array([(m.s_min + m.s_max) / 2, thick / 2, (m.z_min + m.z_max) / 2 - m.hinge_z])
+        size = (m.s_max - m.s_min, thick, m.z_max - m.z_min)
+        frame = mirror_frame(mname)
+        x += [f'  <joint name="{frame}" type="revolute">\n    <parent link="{LASER_FRAME}"/>'
+              f'\n    <child link="{frame}"/>\n    {_origin(R, t)}\n    <axis xyz="1 0 0"/>'
+              f'\n    <limit lower="{lo:.12g}" upper="{hi:.12g}" effort="1" velocity="1"/>'
+              '\n  </joint>',
+              f'  <link name="{frame}">\n    <visual>\n      {_origin(np.eye(3), c)}\n      '
+              f'<geometry><box size="{size[0]:.9g} {size[1]:.9g} {size[2]:.9g}"/></geometry>'
+              '\n      <material name="glass"/>\n    </visual>\n  </link>']
+    x.append("</robot>")
+    return '<?xml version="1.0"?>\n' + "\n".join(x) + "\n"
