@@ -622,6 +622,9 @@ class NodController:
         self.turns: deque[tuple[float, float]] = deque(maxlen=10_000)
         """(time [s], new goal [rad]) each time the goal is flipped."""
         self.error: BaseException | None = None
+        self.read_errors = 0
+        """Polls that got no valid reply (each after the bus's own retries)."""
+        self.max_missed_polls = 5
         self.last_state: ServoState | None = None
         """The servo state the controller read last (tests on a manual clock wait on it)."""
         self._stop = threading.Event()
@@ -684,8 +687,21 @@ class NodController:
         t_cmd = 0.5 * (t_before + bus.time_source())
         self.turns.append((t_cmd, goal))
         deadline = t_cmd + nominal_s + self.stall_timeout_s
+        misses = 0
         while not self._stop.is_set():
-            st = bus.read_state(sid)
+            try:
+                st = bus.read_state(sid)
+            except BusLineError:
+                raise
+            except DeviceError:
+                # one unanswered poll (a busy host, a glitch) is not a stalled servo; the
+                # stall deadline below still ends a ramp that never arrives
+                misses += 1
+                self.read_errors += 1
+                if misses > self.max_missed_polls:
+                    raise
+                continue
+            misses = 0
             self.last_state = st
             if abs(st.angle_rad - goal) <= self.tolerance_rad:
                 return True

@@ -166,7 +166,9 @@ class Session:
             else:
                 lidar_url, servo_url = self.port, self.servo_port
             self.urg = UrgDriver(lidar_url, timeout=self.lidar_timeout_s).open()
-            self.bus = DynamixelBus(servo_url, time_source=self.time_source).open()
+            # the simulated bus shares this machine's cores: give its replies more time
+            self.bus = DynamixelBus(servo_url, time_source=self.time_source,
+                                    timeout_s=0.5 if self.simulated else 0.1).open()
             self.urg.sync_clock(time_source=self.time_source)
         except BaseException:
             self.close()
