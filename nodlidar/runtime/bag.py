@@ -176,6 +176,7 @@ class BagRecorder:
         self._w = None
         self._pending: list[tuple[int, Any]] = []
         self._recent: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._done_until_s = -math.inf  # last beam of the last scan given its PointCloud2
 
     # -- lifecycle ------------------------------------------------------------------------
     def open(self) -> BagRecorder:
@@ -420,6 +421,7 @@ class BagRecorder:
             if not (final or covered or len(self._pending) > _MAX_PENDING_SCANS):
                 break
             self._pending.pop(0)
+            self._done_until_s = max(self._done_until_s, t_last)
             if nod is None or len(nod[0]) == 0:
                 continue  # no nod samples at all: replay cannot assemble this scan either
             cloud = assemble(self._model, ScanBatch.from_scans([rs.scan], [rs.stamp_s]), nod,
@@ -437,8 +439,9 @@ class BagRecorder:
             self._write(self._c_cloud, first_ns, msg, "sensor_msgs/msg/PointCloud2")
             self.points += len(arr)
             self.clouds_written += 1
-        # keep the samples a pending scan may still interpolate from (one before its start)
-        keep_from = (self._pending[0][1].stamp_s if self._pending else math.inf)
+        # keep the samples a pending scan may still interpolate from (one before its
+        # start); with none pending, the next scan's beams come after the last one written
+        keep_from = self._pending[0][1].stamp_s if self._pending else self._done_until_s
         for j, (t, a) in list(self._recent.items()):
             i = max(int(np.searchsorted(t, keep_from)) - 2, 0)
             if i:
