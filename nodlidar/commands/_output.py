@@ -61,7 +61,7 @@ def progress_disable() -> bool | None:
 
 
 _ROLE = re.compile(r":(?:py:)?[a-z]+:`(~?)([^`<]*?)(?:\s*<([^`>]*)>)?`")
-_LITERAL = re.compile(r"``(.+?)``")
+_LITERAL = re.compile(r"``(.+?)``", re.S)  # a literal may span a line break
 _ITEM = re.compile(r"^\s*(?:[-*]|\d+\.)\s")
 
 
