@@ -474,3 +474,177 @@ def test_sample_buffer_and_tick_unwrap():
     assert len(buf) == 4 and buf.dropped == 2
     np.testing.assert_array_equal(buf.snapshot(since_s=3.5).host_time_s, [4, 5])
     np.testing.assert_allclose(unwrap_tick_ms([32760, 32767, 5, 100]), [0, 0.007, 0.013, 0.108])
+
+
+# -- the rest of Protocol 2.0, each through dynamixel-sdk ---------------------------------
+
+
+@pytest.fixture
+def sdk_manual(manual):
+    """dynamixel-sdk on the manual-clock emulator (servos hold still unless advanced)."""
+    clock, emu = manual
+    port = sdk.PortHandler(emu.serve_pty())
+    assert port.openPort() and port.setBaudRate(57600)
+    yield port, sdk.PacketHandler(2.0), clock, emu
+    port.closePort()
+
+
+def test_sdk_bulk_write_and_bulk_read(sdk_manual):
+    port, ph, clock, emu = sdk_manual
+    bw = sdk.GroupBulkWrite(port, ph)
+    assert bw.addParam(1, 64, 1, [1])  # torque on
+    assert bw.addParam(2, 112, 4, list((77).to_bytes(4, "little")))  # profile velocity
+    assert bw.txPacket() == sdk.COMM_SUCCESS
+    # the writes took effect, read back one by one
+    assert ok(ph.read1ByteTxRx(port, 1, 64)) == 1
+    assert ok(ph.read4ByteTxRx(port, 2, 112)) == 77
+    assert ok(ph.read1ByteTxRx(port, 2, 64)) == 0  # only what was asked
+    for fast in (False, True):
+        br = sdk.GroupBulkRead(port, ph)
+        assert br.addParam(1, 64, 1) and br.addParam(2, 112, 4) and br.addParam(3, 132, 4)
+        assert (br.fastBulkRead() if fast else br.txRxPacket()) == sdk.COMM_SUCCESS, fast
+        assert br.getData(1, 64, 1) == 1
+        assert br.getData(2, 112, 4) == 77
+        assert br.getData(3, 132, 4) == 2048
+    # a malformed bulk write (block cut short) changes nothing
+    emu.handle_packet(dx.InstructionPacket(254, dx.Instruction.BULK_WRITE,
+                                           bytes([3, 64, 0, 1, 0])))
+    assert ok(ph.read1ByteTxRx(port, 3, 64)) == 0
+
+
+def test_sdk_fast_sync_read(sdk_manual):
+    port, ph, clock, emu = sdk_manual
+    ok(ph.write1ByteTxRx(port, 3, 64, 1))
+    ok(ph.write4ByteTxRx(port, 3, 116, 2100))
+    clock.advance(5.0)  # arrived
+    sr = sdk.GroupSyncRead(port, ph, 132, 4)
+    for i in (1, 2, 3):
+        assert sr.addParam(i)
+    assert sr.fastSyncRead() == sdk.COMM_SUCCESS
+    assert [sr.getData(i, 132, 4) for i in (1, 2, 3)] == [2048, 2048, 2100]
+    # ... the same values as the plain SYNC_READ (one status packet per servo)
+    assert sr.txRxPacket() == sdk.COMM_SUCCESS
+    assert [sr.getData(i, 132, 4) for i in (1, 2, 3)] == [2048, 2048, 2100]
+    # the fast reply: one packet from ID 0xFE whose last CRC is the packet's own
+    (reply,) = emu.handle_packet(dx.InstructionPacket(
+        254, dx.Instruction.FAST_SYNC_READ, bytes([132, 0, 4, 0, 1, 3])))
+    frame = reply.encode()
+    assert frame[4] == 0xFE and frame[7] == 0x55
+    assert dx.crc16(frame[:-2]) == frame[-2] | frame[-1] << 8
+    assert frame[5] | frame[6] << 8 == len(frame) - 7
+
+
+def test_sdk_reboot_one_and_broadcast(sdk_manual):
+    port, ph, clock, emu = sdk_manual
+    ok(ph.write4ByteTxRx(port, 2, 48, 3000))  # EEPROM: max position limit
+    ok(ph.write1ByteTxRx(port, 2, 65, 1))  # LED on (RAM)
+    ok(ph.write1ByteTxRx(port, 2, 64, 1))
+    ok(ph.write4ByteTxRx(port, 2, 116, 2500))
+    clock.advance(0.1)  # moving
+    comm, err = ph.reboot(port, 2)
+    assert (comm, err) == (sdk.COMM_SUCCESS, 0)
+    here = ok(ph.read4ByteTxRx(port, 2, 132))
+    assert 2048 < here < 2500
+    assert ok(ph.read1ByteTxRx(port, 2, 64)) == 0  # torque off after a restart
+    assert ok(ph.read1ByteTxRx(port, 2, 65)) == 0  # RAM back to power-up values
+    assert ok(ph.read4ByteTxRx(port, 2, 116)) == here  # goal = where the shaft is
+    assert ok(ph.read4ByteTxRx(port, 2, 48)) == 3000  # EEPROM kept
+    clock.advance(5.0)
+    assert ok(ph.read4ByteTxRx(port, 2, 132)) == here  # not moving on
+    # broadcast: every servo restarts, nobody answers
+    for i in (1, 3):
+        ok(ph.write1ByteTxRx(port, i, 64, 1))
+    assert ph.reboot(port, dx.BROADCAST_ID)[0] == sdk.COMM_SUCCESS
+    assert [ok(ph.read1ByteTxRx(port, i, 64)) for i in (1, 2, 3)] == [0, 0, 0]
+    assert [emu._servo(i).reboots for i in (1, 2, 3)] == [1, 2, 1]
+
+
+def test_sdk_factory_reset_options():
+    clock = ManualClock()
+    specs = [ServoSpec(5, "a", max_angle_rad=1.0), ServoSpec(6, "b")]
+    with DxlEmulator(clock, specs) as emu:
+        port = sdk.PortHandler(emu.serve_pty())
+        assert port.openPort()
+        ph = sdk.PacketHandler(2.0)
+        factory_max = ok(ph.read4ByteTxRx(port, 5, 48))
+        assert factory_max == dx.rad_to_ticks(1.0)
+        ok(ph.write4ByteTxRx(port, 5, 48, 2500))
+        ok(ph.write1ByteTxRx(port, 5, 8, 3))  # baud rate 1 Mbps
+        # 0x02: everything but ID and baud rate
+        assert ph.factoryReset(port, 5, 0x02) == (sdk.COMM_SUCCESS, 0)
+        assert ok(ph.read4ByteTxRx(port, 5, 48)) == factory_max
+        assert ok(ph.read1ByteTxRx(port, 5, 8)) == 3
+        # 0x01: everything but the ID
+        assert ph.factoryReset(port, 5, 0x01) == (sdk.COMM_SUCCESS, 0)
+        assert ok(ph.read1ByteTxRx(port, 5, 8)) == 1
+        # a bad option is refused
+        assert ph.factoryReset(port, 5, 0x07) == (sdk.COMM_SUCCESS, dx.ErrorCode.DATA_RANGE)
+        # broadcast 0xFF would give every servo ID 1: ignored
+        assert ph.factoryReset(port, dx.BROADCAST_ID, 0xFF)[0] == sdk.COMM_SUCCESS
+        assert sorted(ph.broadcastPing(port)[0]) == [5, 6]
+        # 0xFF: the factory ID (1) too; the status came from the old ID
+        assert ph.factoryReset(port, 6, 0xFF) == (sdk.COMM_SUCCESS, 0)
+        assert sorted(ph.broadcastPing(port)[0]) == [1, 5]
+        assert ok(ph.read1ByteTxRx(port, 1, 7)) == 1
+        port.closePort()
+
+
+def test_sdk_clear(sdk_manual):
+    port, ph, clock, emu = sdk_manual
+    assert ph.clearMultiTurn(port, 1) == (sdk.COMM_SUCCESS, 0)
+    ok(ph.write1ByteTxRx(port, 1, 64, 1))
+    ok(ph.write4ByteTxRx(port, 1, 116, 3000))
+    clock.advance(0.1)
+    # only a stopped servo may be cleared
+    assert ph.clearMultiTurn(port, 1) == (sdk.COMM_SUCCESS, dx.ErrorCode.RESULT_FAIL)
+    clock.advance(10.0)
+    assert ph.clearMultiTurn(port, 1) == (sdk.COMM_SUCCESS, 0)
+    assert ok(ph.read4ByteTxRx(port, 1, 132)) == 3000
+    # the fixed key is part of the instruction
+    (st,) = emu.handle_packet(dx.InstructionPacket(1, dx.Instruction.CLEAR, b"\x01DXL!"))
+    assert st.error == dx.ErrorCode.DATA_RANGE
+    (st,) = emu.handle_packet(dx.InstructionPacket(1, dx.Instruction.CLEAR, b"\x01"))
+    assert st.error == dx.ErrorCode.DATA_LENGTH
+    # unknown instructions still answer "instruction error"
+    (st,) = emu.handle_packet(dx.InstructionPacket(1, 0x20))
+    assert st.error == dx.ErrorCode.INSTRUCTION
+
+
+def test_tcp_server_caps_connections_and_listens_on_loopback(manual):
+    import socket
+
+    _clock, emu = manual
+    url = emu.serve_tcp(max_connections=3)
+    host, port = url.removeprefix("socket://").rsplit(":", 1)
+    assert host == "127.0.0.1"
+    ping = dx.ping_packet(1).encode()
+    socks = []
+    for _ in range(10):
+        c = socket.create_connection((host, int(port)), timeout=5)
+        socks.append(c)
+    served, refused = 0, 0
+    for c in socks:
+        c.sendall(ping)
+        try:
+            data = c.recv(64)
+        except (ConnectionResetError, TimeoutError):
+            data = b""
+        if data:
+            assert isinstance(dx.decode_packet(data), dx.StatusPacket)
+            served += 1
+        else:
+            refused += 1
+    assert served == 3 and refused == 7
+    assert emu.refused_connections == 7
+    for c in socks:
+        c.close()
+    # a closed client frees its place
+    deadline = time.monotonic() + 10
+    while emu.connections and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert emu.connections == 0
+    with socket.create_connection((host, int(port)), timeout=5) as c:
+        c.sendall(ping)
+        assert isinstance(dx.decode_packet(c.recv(64)), dx.StatusPacket)
+    with pytest.raises(ParameterError, match="max_connections"):
+        emu.serve_tcp(max_connections=0)

@@ -11,13 +11,27 @@ The bus is served over a pseudo terminal (:meth:`DxlEmulator.serve_pty`, the sla
 path opens like ``/dev/ttyUSB0`` with pyserial or dynamixel-sdk) and/or TCP
 (:meth:`DxlEmulator.serve_tcp`, a ``socket://`` URL for ``serial.serial_for_url``).
 
-Modelled: PING, READ, WRITE, REG_WRITE/ACTION, SYNC_READ, SYNC_WRITE, broadcast,
-status return level, error numbers (instruction, CRC, data range, data length,
-data limit, access), EEPROM lock while torque is on, torque gating motion, position
-limits, moving flag/status, realtime tick [ms mod 32768]. Not modelled: operating
-modes other than position control (other modes are stored but still move in
-position mode), homing offset, drive-mode reverse, return delay time, baud rate
-(any baud works), load/gravity, indirect addresses, BULK instructions.
+Modelled: PING, READ, WRITE, REG_WRITE/ACTION, FACTORY_RESET, REBOOT, CLEAR,
+SYNC_READ, SYNC_WRITE, FAST_SYNC_READ, BULK_READ, BULK_WRITE, FAST_BULK_READ, broadcast
+(PING, WRITE, ACTION, REBOOT, FACTORY_RESET 0x01/0x02), status return level, error
+numbers (instruction, CRC, data range, data length, data limit, access, result fail),
+EEPROM lock while torque is on, torque gating motion, position limits, moving
+flag/status, realtime tick [ms mod 32768]. Instruction semantics follow the ROBOTIS
+e-Manual's Protocol 2.0 page and the packet layouts dynamixel-sdk 3.7 sends and parses
+(the fast replies: one packet, ``ERR ID DATA CRC`` per servo, each CRC over the frame so
+far, unstuffed). REBOOT: torque off, RAM items back to their power-up values, EEPROM kept,
+the shaft where it is. FACTORY_RESET: every item back to the servo's
+:class:`ServoSpec` values (0xFF also ID 1; 0x01 keeps the ID; 0x02 keeps ID and baud
+rate). CLEAR 0x01 (multi-turn) and 0x02 (errors) with the fixed key ``44 58 4C 22``;
+refused with result fail while moving. Not modelled: operating modes other than
+position control (other modes are stored but still move in position mode), homing
+offset, drive-mode reverse, return delay time, baud rate (any baud works),
+load/gravity, indirect addresses, control-table backup.
+
+The TCP server listens on loopback unless told otherwise, serves at most
+``max_connections`` clients at once (more are closed on accept) and reads at most 4 KiB
+at a time into a frame parser that holds at most one maximal frame - a hostile client
+costs neither threads nor memory.
 """
 
 from __future__ import annotations
@@ -38,6 +52,7 @@ from nodlidar.dynamixel import (
     BROADCAST_ID,
     CONTROL_TABLE,
     CONTROL_TABLE_SIZE,
+    HEADER,
     MAX_ID,
     RAD_PER_TICK,
     RAD_S_PER_VELOCITY_UNIT,
@@ -51,6 +66,7 @@ from nodlidar.dynamixel import (
     InstructionPacket,
     PacketParser,
     StatusPacket,
+    crc16,
     decode_value,
     encode_value,
     rad_to_ticks,
@@ -59,7 +75,8 @@ from nodlidar.errors import ParameterError, ProtocolError, require
 
 from .clock import SimClock
 
-__all__ = ["ServoSpec", "DEFAULT_SERVOS", "DxlEmulator", "PROFILE_ACCEL_UNIT_RAD_S2"]
+__all__ = ["ServoSpec", "DEFAULT_SERVOS", "DxlEmulator", "PROFILE_ACCEL_UNIT_RAD_S2",
+           "MAX_TCP_CONNECTIONS"]
 
 PROFILE_ACCEL_UNIT_RAD_S2 = 214.577 * 2.0 * math.pi / 3600.0
 """One unit of profile acceleration (214.577 rev/min^2) in rad/s^2."""
@@ -67,6 +84,9 @@ PROFILE_ACCEL_UNIT_RAD_S2 = 214.577 * 2.0 * math.pi / 3600.0
 _TICK_S_PER_VEL_UNIT = RAD_S_PER_VELOCITY_UNIT / RAD_PER_TICK
 _TICK_S2_PER_ACC_UNIT = PROFILE_ACCEL_UNIT_RAD_S2 / RAD_PER_TICK
 _HISTORY = 20_000  # motion segments kept per servo for ground-truth queries
+_RAM_START = CONTROL_TABLE["torque_enable"].address  # items below live in EEPROM
+_CLEAR_KEY = b"\x44\x58\x4c\x22"  # "DXL\"": CLEAR's fixed parameters after the option
+MAX_TCP_CONNECTIONS = 8
 
 
 @dataclass(frozen=True)
@@ -237,11 +257,13 @@ class _Servo:
         }
         for name, value in defaults.items():
             self._set(name, value)
+        self.factory = bytes(self.table)  # what FACTORY_RESET / REBOOT restore
         p0 = spec.initial_angle_rad / RAD_PER_TICK + 2048
         self._set("goal_position", int(round(p0)))
         self.history: deque[_Segment] = deque(maxlen=_HISTORY)
         self.history.append(_Segment(t_now, p0, p0, 0.0))
         self.registered: tuple[int, bytes] | None = None
+        self.reboots = 0
 
     # -- table helpers ------------------------------------------------------------
     def _set(self, name: str, value: int) -> None:
@@ -305,6 +327,32 @@ class _Servo:
         self._set("moving_status", status)
         self._set("realtime_tick", int(math.floor(t * 1000.0)) % REALTIME_TICK_MODULO)
         self._set("registered_instruction", 1 if self.registered else 0)
+
+    def power_up(self, t: float) -> None:
+        """REBOOT: torque off (the shaft stays where it is), RAM items back to their
+        power-up values, the goal at the present position; EEPROM kept."""
+        p = self.position_ticks(t)
+        self.table[_RAM_START:] = self.factory[_RAM_START:]
+        self._set("goal_position", int(round(p)))
+        self.history.append(_Segment(t, p, p, 0.0))
+        self.registered = None
+        self.reboots += 1
+
+    def factory_reset(self, t: float, option: int) -> None:
+        """FACTORY_RESET ``option`` (0xFF all, 0x01 all but the ID, 0x02 all but ID and
+        baud rate), then a power-up."""
+        keep = {"id": self.id, "baud_rate": self.get("baud_rate")}
+        self.table[:_RAM_START] = self.factory[:_RAM_START]
+        if option == 0xFF:
+            self._set("id", 1)  # the factory ID of every X-series servo
+        else:
+            self._set("id", keep["id"])
+            if option == 0x02:
+                self._set("baud_rate", keep["baud_rate"])
+        self.power_up(t)
+
+    def moving(self, t: float) -> bool:
+        return self.torque and t < self.segment.t_end
 
     # -- access -------------------------------------------------------------------
     def read(self, t: float, address: int, length: int) -> tuple[int, bytes]:
@@ -387,6 +435,48 @@ class _Servo:
             self._start(t, float(self.get("goal_position")), moving=True)
 
 
+def _bulk_blocks(p: bytes, *, with_data: bool):
+    """``(id, address, length)`` blocks of a BULK_READ, or ``(id, address, data)`` of a
+    BULK_WRITE; nothing if the parameters do not split into whole blocks."""
+    blocks, k = [], 0
+    while k < len(p):
+        if k + 5 > len(p):
+            return []
+        sid, address, length = p[k], decode_value(p[k + 1:k + 3]), decode_value(p[k + 3:k + 5])
+        k += 5
+        if with_data:
+            if length == 0 or k + length > len(p):
+                return []
+            blocks.append((sid, address, bytes(p[k:k + length])))
+            k += length
+        else:
+            blocks.append((sid, address, length))
+    return blocks
+
+
+class _FastReply:
+    """The single status packet of a FAST_SYNC_READ / FAST_BULK_READ (ID 0xFE): per
+    servo ``ERR ID DATA CRC``, each CRC over the frame up to it (the last one is the
+    packet's), not byte-stuffed - the layout dynamixel-sdk parses."""
+
+    def __init__(self, frame: bytes):
+        self.frame = frame
+
+    @classmethod
+    def build(cls, blocks: list[tuple[int, int, bytes]]) -> _FastReply:
+        length = 1 + sum(len(d) + 4 for _, _, d in blocks)  # instruction + blocks (+ CRC)
+        frame = bytearray(HEADER + bytes([BROADCAST_ID, length & 0xFF, length >> 8,
+                                          Instruction.STATUS]))
+        for err, sid, data in blocks:
+            frame += bytes([err, sid]) + data
+            crc = crc16(frame)
+            frame += bytes([crc & 0xFF, crc >> 8])
+        return cls(bytes(frame))
+
+    def encode(self) -> bytes:
+        return self.frame
+
+
 class DxlEmulator:
     """A Dynamixel Protocol 2.0 bus with several emulated X-series servos.
 
@@ -419,6 +509,10 @@ class DxlEmulator:
         self._closers: list = []
         self.packets_handled = 0
         self.crc_errors = 0
+        self.connections = 0
+        """TCP clients being served now."""
+        self.refused_connections = 0
+        """TCP clients closed on accept because ``max_connections`` were being served."""
 
     # -- ground truth -------------------------------------------------------------
     @property
@@ -587,10 +681,94 @@ class DxlEmulator:
                 if s is not None:
                     self._do_write(s, t, address, body[k + 1 : k + 1 + length])
             return []
+        if ins == Instruction.BULK_WRITE:
+            if bc:
+                for sid, address, data in _bulk_blocks(p, with_data=True):
+                    s = self._servos.get(sid)
+                    if s is not None:
+                        self._do_write(s, t, address, data)
+            return []
+        if ins in (Instruction.BULK_READ, Instruction.FAST_BULK_READ):
+            if not bc:
+                return []
+            reads = [(sid, a, n) for sid, a, n in _bulk_blocks(p, with_data=False)]
+            return self._bulk_read(t, reads, fast=ins == Instruction.FAST_BULK_READ)
+        if ins == Instruction.FAST_SYNC_READ:
+            if not bc or len(p) < 5:
+                return []
+            address, length = decode_value(p[:2]), decode_value(p[2:4])
+            return self._bulk_read(t, [(sid, address, length) for sid in p[4:]], fast=True)
+        if ins == Instruction.REBOOT:
+            out = []
+            for s in targets:
+                if not bc:
+                    out += self._reply(s, ErrorCode.NONE)  # answered before restarting
+                s.power_up(t)
+            return out
+        if ins == Instruction.FACTORY_RESET:
+            option = p[0] if len(p) == 1 else None
+            out = []
+            for s in targets:
+                if bc:
+                    # a broadcast may not reset IDs (they would all become 1)
+                    if option in (0x01, 0x02):
+                        self._rekeyed(s, lambda s=s: s.factory_reset(t, option))
+                    continue
+                if option is None:
+                    out += self._reply(s, ErrorCode.DATA_LENGTH)
+                elif option not in (0x01, 0x02, 0xFF):
+                    out += self._reply(s, ErrorCode.DATA_RANGE)
+                else:
+                    out += self._reply(s, ErrorCode.NONE)
+                    self._rekeyed(s, lambda s=s: s.factory_reset(t, option))
+            return out
+        if ins == Instruction.CLEAR:
+            out = []
+            for s in targets:
+                if len(p) != 5:
+                    err = ErrorCode.DATA_LENGTH
+                elif p[0] not in (0x01, 0x02) or p[1:] != _CLEAR_KEY:
+                    err = ErrorCode.DATA_RANGE
+                elif s.moving(t):
+                    err = ErrorCode.RESULT_FAIL  # only a stopped servo may be cleared
+                else:
+                    err = ErrorCode.NONE
+                    if p[0] == 0x02:
+                        s._set("hardware_error_status", 0)
+                    # 0x01: the emulated position never leaves one turn: nothing to reset
+                if not bc:
+                    out += self._reply(s, err)
+            return out
         # unknown / unsupported instruction
         if bc:
             return []
         return [StatusPacket(targets[0].id, ErrorCode.INSTRUCTION)]
+
+    def _rekeyed(self, s: _Servo, change) -> None:
+        """Run ``change`` (which may change the servo's ID) and file the servo under its ID."""
+        old = s.id
+        change()
+        if s.id != old:
+            self._servos.pop(old, None)
+            self._servos[s.id] = s
+
+    def _bulk_read(self, t: float, reads, *, fast: bool) -> list:
+        """Replies to (FAST_)SYNC/BULK_READ of ``(id, address, length)``: one status per
+        servo in the order asked, or (fast) one packet carrying every servo's block."""
+        out: list = []
+        blocks = []
+        for sid, address, length in reads:
+            s = self._servos.get(sid)
+            if s is None:
+                continue  # absent: no reply (the client times out or sees a short packet)
+            err, data = s.read(t, address, length)
+            if fast:
+                blocks.append((err, s.id, data if not err else bytes(length)))
+            else:
+                out += self._reply(s, err, data, is_read=True)
+        if fast and blocks:
+            out.append(_FastReply.build(blocks))
+        return out
 
     def handle_bytes(self, data: bytes, parser: PacketParser) -> bytes:
         """Feed received bytes through ``parser``; return the reply bytes to send."""
@@ -658,36 +836,59 @@ class DxlEmulator:
         self._spawn(run, f"dxl-pty-{path}")
         return path
 
-    def serve_tcp(self, host: str = "127.0.0.1", port: int = 0) -> str:
+    def serve_tcp(self, host: str = "127.0.0.1", port: int = 0, *,
+                  max_connections: int = MAX_TCP_CONNECTIONS) -> str:
         """Serve the bus on TCP; return a ``socket://host:port`` URL for pyserial.
 
-        Each connection gets its own frame parser; several may be open at once.
+        Parameters
+        ----------
+        host : str
+            Interface to listen on: loopback by default (``0.0.0.0`` exposes the bus to
+            the network - a choice the caller makes).
+        port : int
+            TCP port; 0 picks a free one.
+        max_connections : int
+            Clients served at once (each its own frame parser and thread); a client
+            beyond that is closed as soon as it is accepted (``refused_connections``
+            counts them).
         """
-        srv = socket.create_server((host, port))
+        require(isinstance(max_connections, int) and 1 <= max_connections <= 1024,
+                "max_connections", max_connections, "1..1024")
+        try:
+            srv = socket.create_server((host, port))
+        except (OSError, OverflowError) as e:
+            raise ParameterError("servo host:port", f"{host}:{port}",
+                                 f"a free local address ({e})") from None
         srv.settimeout(0.05)
         self._closers.append(srv.close)
         host_, port_ = srv.getsockname()[:2]
+        active = threading.BoundedSemaphore(max_connections)
 
         def serve_conn(conn: socket.socket) -> None:
-            parser = PacketParser()
-            conn.settimeout(0.05)
-            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            with conn:
-                while not self._stop.is_set():
-                    try:
-                        data = conn.recv(4096)
-                    except TimeoutError:
-                        continue
-                    except OSError:
-                        return
-                    if not data:
-                        return
-                    reply = self.handle_bytes(data, parser)
-                    if reply:
+            parser = PacketParser()  # holds at most one maximal frame (MAX_LENGTH)
+            try:
+                conn.settimeout(0.05)
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                with conn:
+                    while not self._stop.is_set():
                         try:
-                            conn.sendall(reply)
+                            data = conn.recv(4096)
+                        except TimeoutError:
+                            continue
                         except OSError:
                             return
+                        if not data:
+                            return
+                        reply = self.handle_bytes(data, parser)
+                        if reply:
+                            try:
+                                conn.sendall(reply)
+                            except OSError:
+                                return
+            finally:
+                with self._lock:
+                    self.connections -= 1
+                active.release()
 
         def accept_loop() -> None:
             while not self._stop.is_set():
@@ -697,6 +898,15 @@ class DxlEmulator:
                     continue
                 except OSError:
                     return
+                if not active.acquire(blocking=False):
+                    with self._lock:
+                        self.refused_connections += 1
+                    conn.close()
+                    continue
+                with self._lock:
+                    self.connections += 1
+                # finished connection threads leave the list (no growth over many clients)
+                self._threads = [th for th in self._threads if th.is_alive()]
                 self._spawn(lambda c=conn: serve_conn(c), f"dxl-tcp-conn-{port_}")
 
         self._spawn(accept_loop, f"dxl-tcp-{port_}")
