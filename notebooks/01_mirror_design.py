@@ -28,14 +28,16 @@ import numpy as np
 
 from nodlidar.analysis import beam_density, bearing_drift, interleave, plots
 from nodlidar.designio import mirror_table, paper_comparison
+from nodlidar.paper import PAPER_DESIGN
 from nodlidar.solver import solve
 from nodlidar.spec import load_design
 
-ROOT = Path.cwd() if (Path.cwd() / "design").is_dir() else Path(__file__).resolve().parents[1]
+# the design file is package data: found from any working directory (Jupyter starts the
+# kernel in notebooks/) and after a normal install, without __file__
 OUT = Path(os.environ.get("NODLIDAR_OUT") or tempfile.mkdtemp(prefix="nodlidar-nb01-"))
 OUT.mkdir(parents=True, exist_ok=True)
 
-spec = load_design(ROOT / "design" / "urg04lx-paper.toml")
+spec = load_design(PAPER_DESIGN)
 design = solve(spec)
 lidar = design.lidar
 print(f"{lidar.name}: {lidar.n_steps} valid steps, resolution {lidar.angular_resolution:.6f} rad "

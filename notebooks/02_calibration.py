@@ -34,15 +34,16 @@ import numpy as np
 from nodlidar.calibration import calibrate, load_calibration, write_calibration
 from nodlidar.calibration.plots import plot_residual_histograms, plot_walls
 from nodlidar.calibration.synthetic import DEFAULT_WALLS, simulated_captures
-from nodlidar.paper import TABLE_I_PERTURBATIONS
+from nodlidar.paper import PAPER_DESIGN, TABLE_I_PERTURBATIONS
 from nodlidar.solver import solve
 from nodlidar.spec import load_design
 
-ROOT = Path.cwd() if (Path.cwd() / "design").is_dir() else Path(__file__).resolve().parents[1]
+# the design file is package data: found from any working directory (Jupyter starts the
+# kernel in notebooks/) and after a normal install, without __file__
 OUT = Path(os.environ.get("NODLIDAR_OUT") or tempfile.mkdtemp(prefix="nodlidar-nb02-"))
 OUT.mkdir(parents=True, exist_ok=True)
 
-design = solve(load_design(ROOT / "design" / "urg04lx-paper.toml"))
+design = solve(load_design(PAPER_DESIGN))
 truth = dict(TABLE_I_PERTURBATIONS)
 print("walls:", ", ".join(f"{w.distance_m} m at {np.degrees(w.yaw_rad):+.0f} deg" for w in DEFAULT_WALLS))
 

@@ -33,16 +33,18 @@ from pathlib import Path
 
 import numpy as np
 
+from nodlidar.paper import PAPER_DESIGN
 from nodlidar.solver import solve
 from nodlidar.spec import load_design
 from nodlidar.tracking import study
 from nodlidar.tracking.segment import SegmentConfig, segment_batch
 from nodlidar.tracking.simdata import simulate_scans
 
-ROOT = Path.cwd() if (Path.cwd() / "design").is_dir() else Path(__file__).resolve().parents[1]
+# the design file is package data: found from any working directory (Jupyter starts the
+# kernel in notebooks/) and after a normal install, without __file__
 OUT = Path(os.environ.get("NODLIDAR_OUT") or tempfile.mkdtemp(prefix="nodlidar-nb03-"))
 OUT.mkdir(parents=True, exist_ok=True)
-design = solve(load_design(ROOT / "design" / "urg04lx-paper.toml"))
+design = solve(load_design(PAPER_DESIGN))
 
 # %% [markdown]
 # ## Segmentation of one scan
@@ -60,6 +62,24 @@ print(f"scan {s.scan.scan}: {int(s.scan.valid.sum())} returns, {int(truth.sum())
 
 fig = study.plot_segmentation(s)
 fig.savefig(OUT / "segmentation_scan.png", dpi=100)
+
+# %% [markdown]
+# ## The raw cloud in 3D
+#
+# Every return of the 38 scans (world frame, the cylinder smeared along its path),
+# coloured by the mirror the beam reflected off - a static view for users without
+# Foxglove (`nodlidar view` streams the same live).
+
+# %%
+from nodlidar.analysis.plots import plot_cloud_3d  # noqa: E402
+
+cloud_xyz = np.concatenate([sc.points[sc.valid] for sc in scans])
+cloud_mirror = np.concatenate([sc.mirror[sc.valid] for sc in scans])
+fig = plot_cloud_3d(cloud_xyz, mirror=cloud_mirror, title=f"{len(scans)} scans, mirrors deployed")
+drawn = sum(len(c.get_offsets()) for c in fig.axes[0].collections)
+print(f"{len(cloud_xyz)} points, {drawn} drawn; reflected: {int((cloud_mirror >= 0).sum())}")
+assert 0 < drawn <= 30_000 and (cloud_mirror >= 0).any()
+fig.savefig(OUT / "cloud_3d.png", dpi=100)
 
 # %% [markdown]
 # ## The study: mirrors deployed vs lifted

@@ -353,3 +353,32 @@ def test_encoded_messages_decode_with_the_advertised_schemas():
     pv = np.asarray(piv)
     rpv = pv + 2 * w * np.cross(qv, pv) + 2 * np.cross(qv, np.cross(qv, pv))
     assert_allclose(rpv + t, pv, atol=1e-12)
+
+
+def test_static_cloud_plot():
+    """plot_cloud_3d: one scatter per mirror holding exactly that mirror's (finite) points,
+    subsampled deterministically to max_points; axes in metres at equal scale."""
+    import matplotlib.pyplot as plt  # noqa: TID251 (a plot test)
+
+    from nodlidar.analysis.plots import plot_cloud_3d
+
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(1000, 3)) * [2.0, 1.0, 0.5]
+    xyz[5] = np.nan   # skipped
+    mirror = rng.integers(-1, 4, size=1000)
+    fig = plot_cloud_3d(xyz, mirror=mirror)
+    ax = fig.axes[0]
+    finite = np.isfinite(xyz).all(axis=1)
+    for col in ax.collections:
+        label = col.get_label().split(" (")[0]
+        m = -1 if label == "direct" else int(label.split()[-1])
+        drawn = np.column_stack(col._offsets3d)
+        assert_allclose(drawn, xyz[finite & (mirror == m)])
+    assert sum(len(c.get_offsets()) for c in ax.collections) == finite.sum()
+    box = ax.get_box_aspect()   # proportional to the data's extent on each axis
+    ext = np.nanmax(xyz, axis=0) - np.nanmin(xyz, axis=0)
+    assert_allclose(box / box[0], ext / ext[0], rtol=1e-6)
+    plt.close(fig)
+    fig = plot_cloud_3d(xyz, mirror=mirror, max_points=100)
+    assert 50 <= sum(len(c.get_offsets()) for c in fig.axes[0].collections) <= 100
+    plt.close(fig)

@@ -28,6 +28,7 @@ __all__ = [
     "plot_tolerance_hist",
     "plot_tolerance_percentiles",
     "plot_sensitivities",
+    "plot_cloud_3d",
 ]
 
 DIRECT_COLOUR = "0.45"
@@ -328,4 +329,67 @@ def plot_sensitivities(result: SensitivityResult, ax=None):
     a.axhline(0, color="k", lw=0.6)
     a.set_title(f"d(bearing at D = {result.design_distance_m:g} m) / d(parameter), mean over beams")
     a.legend(fontsize=7)
+    return fig
+
+
+def plot_cloud_3d(cloud: Any, *, mirror: np.ndarray | None = None, ax=None,
+                  max_points: int = 30_000, elev_deg: float = 25.0, azim_deg: float = -120.0,
+                  point_size: float = 1.0, title: str | None = None):
+    """Static 3D scatter of a point cloud, coloured by mirror (direct beams grey).
+
+    For notebooks and users without Foxglove (``nodlidar view`` is the live view).
+
+    Parameters
+    ----------
+    cloud : PointCloud or (n, 3) array
+        A :class:`~nodlidar.runtime.assembly.PointCloud` (its ``xyz`` [m] and ``mirror``
+        ids are used) or bare points [m]; rows with a non-finite coordinate are skipped.
+    mirror : (n,) int, optional
+        Mirror index per point (-1 direct); taken from ``cloud.mirror`` when not given.
+    ax : a 3D Axes (``projection="3d"``), optional
+    max_points : int
+        At most this many points are drawn (every k-th, deterministic), so a sweep of
+        100 000 points stays interactive.
+    elev_deg, azim_deg : float
+        View angles [deg].
+
+    Returns the Figure. The axes have equal scale in x, y and z (metres).
+    """
+    import matplotlib.pyplot as plt  # noqa: TID251 (lazy, inside a plot function)
+
+    from ..errors import ParameterError
+
+    xyz = np.asarray(getattr(cloud, "xyz", cloud), dtype=float)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ParameterError("cloud", f"shape {xyz.shape}", "a PointCloud or an (n, 3) array")
+    if mirror is None:
+        mirror = getattr(cloud, "mirror", None)
+    ids = np.full(len(xyz), -1, dtype=int) if mirror is None else np.asarray(mirror, dtype=int)
+    if ids.shape != (len(xyz),):
+        raise ParameterError("mirror", f"shape {ids.shape}", f"({len(xyz)},)")
+    if max_points < 1:
+        raise ParameterError("max_points", max_points, "an integer >= 1")
+    keep = np.flatnonzero(np.all(np.isfinite(xyz), axis=1))
+    keep = keep[:: max(1, int(np.ceil(len(keep) / max_points)))]
+    xyz, ids = xyz[keep], ids[keep]
+    names = list(getattr(cloud, "mirror_names", ()) or ())
+    if ax is None:
+        fig = plt.figure(figsize=(7.0, 5.6), layout="constrained")
+        ax = fig.add_subplot(projection="3d")
+    fig = ax.figure
+    for m in np.unique(ids):   # one scatter per mirror: a legend entry each
+        sel = ids == m
+        label = "direct" if m < 0 else (names[m] if m < len(names) else f"mirror {m}")
+        ax.scatter(xyz[sel, 0], xyz[sel, 1], xyz[sel, 2], s=point_size, color=mirror_colour(int(m)),
+                   label=f"{label} ({int(sel.sum())})", depthshade=False)
+    if len(xyz):
+        lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+        ax.set_box_aspect(np.maximum(hi - lo, 1e-3))   # metres look like metres on every axis
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.view_init(elev=elev_deg, azim=azim_deg)
+    ax.set_title(title or f"{len(xyz)} points")
+    if len(xyz):
+        ax.legend(loc="upper left", fontsize="small", markerscale=4)
     return fig
