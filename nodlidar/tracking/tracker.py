@@ -61,7 +61,7 @@ class TrackerConfig:
     gate_chi2: float = 13.8
     merge_m: float = 0.3
     confirm_scans: int = 2
-    max_missed: int = 12
+    max_missed: int = 25
     window_scans: int = 40
     entropy: str = "renyi"
     sigma_m: float = 0.02
@@ -322,6 +322,36 @@ class Tracker:
         if len(ids) and len(objs):
             rows, cols = linear_sum_assignment(cost)
             assign = {int(b): int(a) for a, b in zip(rows, cols) if cost[a, b] < big}
+        # a confirmed track left without a cluster whose prediction gates with a cluster
+        # another track took: two objects in one cluster (they touch in the top view, or
+        # one is partly behind the other); split the cluster between the two predictions
+        objs, cents, times = list(objs), list(cents), list(times)
+        taken = set(assign.values())
+        for a, tid in enumerate(ids):
+            tr = self.tracks[tid]
+            if a in taken or len(tr.scans) < cfg.confirm_scans:
+                continue
+            cand = [(cost[a, b], b) for b in assign if cost[a, b] < big]
+            if not cand:
+                continue
+            b = min(cand)[1]
+            a2 = assign[b]
+            pa = np.asarray(priors[a, b].state_vector, float).ravel()[[0, 2]]
+            pb = np.asarray(priors[a2, b].state_vector, float).ravel()[[0, 2]]
+            idx = objs[b]
+            xy = scan.points[idx, :2]
+            mine = (np.linalg.norm(xy - pa, axis=1) < np.linalg.norm(xy - pb, axis=1))
+            if mine.sum() < 3 or (~mine).sum() < 3:
+                continue
+            objs[b] = idx[~mine]
+            cents[b] = xy[~mine].mean(axis=0)
+            objs.append(idx[mine])
+            cents.append(xy[mine].mean(axis=0))
+            times.append(float(scan.t_s[idx[mine]].mean()))
+            nb = len(objs) - 1
+            assign[nb] = a
+            priors[a, nb] = priors[a, b]
+            taken.add(a)
         # leftovers near a track's assigned cluster are pieces of the same object
         members: dict[int, list[int]] = {a: [b] for b, a in assign.items()}
         births = []
