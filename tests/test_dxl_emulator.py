@@ -648,3 +648,24 @@ def test_tcp_server_caps_connections_and_listens_on_loopback(manual):
         assert isinstance(dx.decode_packet(c.recv(64)), dx.StatusPacket)
     with pytest.raises(ParameterError, match="max_connections"):
         emu.serve_tcp(max_connections=0)
+
+
+def test_nod_stall_is_reported_once(manual):
+    clock, emu = manual
+    prof = NodProfile(lower_rad=-0.2, upper_rad=0.15, rate_rad_s=0.5)
+    with DynamixelBus(emu.serve_pty(), time_source=clock.now) as bus:
+        nod = NodController(bus, prof, poll_interval_s=0.0005, stall_timeout_s=0.5)
+        with pytest.raises(DeviceError, match="nod controller failed: .* not reached"):
+            with nod:
+                reader = [lambda: nod.last_state.host_time_s if nod.last_state else -math.inf]
+                assert _step_clock(clock, lambda: nod.sweeps >= 1, reader, dt=0.005,
+                                   max_steps=1000)
+                emu.set_angle("nod", 0.0)  # seized mid-ramp: torque off, shaft held
+                t_seized = clock.now()
+                _step_clock(clock, lambda: nod.error is not None, reader, dt=0.005,
+                            max_steps=1000)
+                t_err = clock.now()
+    # reported once the ramp's nominal time plus the stall timeout have passed since its
+    # goal was set (a step or two before the seizure), to within a few clock steps
+    nominal = prof.amplitude_rad / prof.rate_rad_s
+    assert t_err - t_seized == pytest.approx(nominal + 0.5, abs=4 * 0.005)

@@ -584,8 +584,9 @@ class NodController:
     approach_rate_rad_s : float or None
         Rate for the initial move to ``lower`` (default: the nod rate).
     stall_timeout_s : float
-        If a ramp takes longer than its nominal time plus this [time-source s],
-        the controller stops with a :class:`DeviceError`.
+        If a ramp takes longer than its nominal time plus this [time-source s] and the
+        servo has not come closer to the goal for this long, the controller stops with
+        a :class:`DeviceError`.
     """
 
     def __init__(
@@ -688,6 +689,7 @@ class NodController:
         self.turns.append((t_cmd, goal))
         deadline = t_cmd + nominal_s + self.stall_timeout_s
         misses = 0
+        best = math.inf
         while not self._stop.is_set():
             try:
                 st = bus.read_state(sid)
@@ -703,12 +705,19 @@ class NodController:
                 continue
             misses = 0
             self.last_state = st
-            if abs(st.angle_rad - goal) <= self.tolerance_rad:
+            dist = abs(st.angle_rad - goal)
+            if dist <= self.tolerance_rad:
                 return True
+            if dist < best - self.tolerance_rad:
+                # still closing in: a late start (a retried goal write, a busy host) is not
+                # a stall; a servo that stops short is one stall_timeout_s later
+                best = dist
+                deadline = max(deadline, st.host_time_s + self.stall_timeout_s)
             if st.host_time_s > deadline:
                 raise DeviceError(
-                    f"servo {sid}: nod goal {goal:.4f} rad not reached by "
-                    f"{nominal_s + self.stall_timeout_s:.2f} s (at {st.angle_rad:.4f} rad)"
+                    f"servo {sid}: nod goal {goal:.4f} rad not reached (at "
+                    f"{st.angle_rad:.4f} rad, no progress for {self.stall_timeout_s:g} s after "
+                    f"the nominal {nominal_s:.2f} s)"
                 )
             if self.poll_interval_s:
                 self._stop.wait(self.poll_interval_s)

@@ -237,7 +237,10 @@ class Session:
                     "mirror_right": PositionSampler(bus, MIRROR_RIGHT_ID, period_s=mirror_period_s)}
         for s in samplers.values():
             s.start()
-        nod = NodController(bus, self.nod_profile())
+        # a wall-clock hiccup of the simulated sensor's host lasts sim_rate times longer
+        # in simulated seconds
+        stall_s = 2.0 * max(1.0, self.sim_rate) if self.simulated else 2.0
+        nod = NodController(bus, self.nod_profile(), stall_timeout_s=stall_s)
         scans: list = [] if keep else _ScanWindow()
         t0 = self.time_source()
         failed = False
