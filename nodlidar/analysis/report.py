@@ -51,6 +51,7 @@ class ReportData:
     tolerance: ToleranceResult
     sensitivity: SensitivityResult
     other_error: str | None = None
+    exploration: Any = None  # an analysis.explore.ExploreResult: the design-space section
 
 
 @dataclass(frozen=True)
@@ -71,7 +72,8 @@ def default_out_dir(spec: DesignSpec) -> Path:
 
 def compute_report(spec: DesignSpec, *, samples: int | None = None, seed: int | None = None,
                    workers: int | None = None, scheduler: str | None = None,
-                   progress: Callable[[int, int], None] | None = None) -> ReportData:
+                   progress: Callable[[int, int], None] | None = None,
+                   exploration: Any = None) -> ReportData:
     """Solve ``spec`` and run every analysis the report shows.
 
     ``samples``/``seed`` override the ``[tolerance]`` table; ``workers``/``scheduler``
@@ -100,7 +102,7 @@ def compute_report(spec: DesignSpec, *, samples: int | None = None, seed: int | 
         drift=bearing_drift(design), interleave=il, density=beam_density(il),
         tolerance=monte_carlo(design, tol, samples=samples, seed=seed, workers=workers,
                               scheduler=scheduler, progress=progress),
-        sensitivity=sensitivities(design), other_error=other_error)
+        sensitivity=sensitivities(design), other_error=other_error, exploration=exploration)
 
 
 # ---------------------------------------------------------------------------------------
@@ -382,6 +384,12 @@ def write_report(data: ReportData, out_dir: str | Path) -> ReportPaths:
                 r["closed_form_max_diff"]] for r in data.sensitivity.table()])
     put("sensitivities", *by["sensitivities"])
 
+    design_space = None
+    if data.exploration is not None:  # nodlidar explore's table and Pareto plots
+        from .explore import report_section
+
+        design_space = report_section(data.exploration, doc, put)
+
     doc.heading("Design file")
     doc.code(toml_text)
 
@@ -403,6 +411,7 @@ def write_report(data: ReportData, out_dir: str | Path) -> ReportPaths:
                   "first_last": dr.first_last_table()},
         "tolerance": {"spec": t.to_dict(), "n_samples": tr.n_samples, "table": trows},
         "sensitivities": data.sensitivity.table(),
+        "design_space": design_space,
     }
     json_path = out / "report.json"
     json_path.write_text(json.dumps(summary, indent=2, default=float))

@@ -22,6 +22,8 @@ def register(sub) -> None:
     p.add_argument("--scheduler", metavar="ADDR", help="run the Monte Carlo on this Dask scheduler")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object: the files written and the report's summary")
+    p.add_argument("--explore", metavar="JSON",
+                   help="add the design-space section from an explore.json of nodlidar explore")
     p.set_defaults(func=run)
 
 
@@ -56,10 +58,16 @@ def run(args) -> int:
     if args.workers is not None and args.workers < 0:
         raise ParameterError("--workers", args.workers, "an integer >= 0")
     spec = load_design(args.design)
+    exploration = None
+    if getattr(args, "explore", None):
+        from ..analysis.explore import load_exploration
+
+        exploration = load_exploration(args.explore)  # before the Monte Carlo
     progress, close = tqdm_progress("Monte Carlo")
     try:
         data = compute_report(spec, samples=args.samples, seed=args.seed, workers=args.workers,
-                              scheduler=args.scheduler, progress=progress)
+                              scheduler=args.scheduler, progress=progress,
+                              exploration=exploration)
     finally:
         close()
     paths = write_report(data, args.out or default_out_dir(spec))
