@@ -854,11 +854,9 @@ class DxlEmulator:
         """
         require(isinstance(max_connections, int) and 1 <= max_connections <= 1024,
                 "max_connections", max_connections, "1..1024")
-        try:
-            srv = socket.create_server((host, port))
-        except (OSError, OverflowError) as e:
-            raise ParameterError("servo host:port", f"{host}:{port}",
-                                 f"a free local address ({e})") from None
+        require(isinstance(port, int) and 0 <= port <= 65535, "servo port", port,
+                "0..65535 (0 = any free port)")
+        srv = socket.create_server((host, port))  # OSError (in use, no such address): as is
         srv.settimeout(0.05)
         self._closers.append(srv.close)
         host_, port_ = srv.getsockname()[:2]

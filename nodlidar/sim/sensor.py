@@ -65,6 +65,13 @@ class SimulatedSensor:
     mirror_deployed_rad, mirror_lifted_rad : float
         Mirror servo angles [rad] of the deployed and lifted positions
         (``MirrorLiftProfile`` defaults).
+    host : str
+        TCP transport: the address both servers listen on (loopback by default).
+    lidar_port, servo_port : int
+        TCP transport: fixed ports (0: any free port).
+    scip1 : bool
+        The lidar boots in SCIP 1.1 mode (as a factory-fresh URG-04LX): a client must send
+        ``SCIP2.0`` first.
 
     Nothing starts in the constructor; :meth:`start` (or ``with``) serves both devices.
     """
@@ -73,9 +80,18 @@ class SimulatedSensor:
                  perturbations: Mapping[str, Perturbation] | None = None, transport: str = "pty",
                  rate: float = 1.0, noise: bool = True, seed: int = 0,
                  faults: FaultConfig | None = None, mirror_deployed_rad: float = 0.0,
-                 mirror_lifted_rad: float = math.pi / 2):
+                 mirror_lifted_rad: float = math.pi / 2, host: str = "127.0.0.1",
+                 lidar_port: int = 0, servo_port: int = 0, scip1: bool = False):
         if transport not in ("pty", "tcp"):
             raise ParameterError("transport", transport, "'pty' or 'tcp'")
+        for name, v in (("lidar_port", lidar_port), ("servo_port", servo_port)):
+            if not (isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 65535):
+                raise ParameterError(name, v, "an integer 0..65535 (0 = any free port)")
+        if lidar_port and lidar_port == servo_port:
+            raise ParameterError("servo_port", servo_port, f"!= lidar_port ({lidar_port})")
+        if not (isinstance(host, str) and host):
+            raise ParameterError("host", host, "an address such as 127.0.0.1")
+        self.host, self.lidar_port, self.servo_port = host, lidar_port, servo_port
         self.design = design
         self.transport = transport
         self.noise = bool(noise)
@@ -87,7 +103,8 @@ class SimulatedSensor:
         self.scene = self.simulator.scene
         self.clock = SimClock(rate)
         self.dxl = DxlEmulator(self.clock)
-        self.scip = ScipEmulator(design.lidar, self.clock, self.range_source, faults=faults)
+        self.scip = ScipEmulator(design.lidar, self.clock, self.range_source, faults=faults,
+                                 **({"scip1": True} if scip1 else {}))
         self.lidar_url: str | None = None
         self.servo_url: str | None = None
         self._truth: OrderedDict[int, ScanTruth] = OrderedDict()
@@ -132,8 +149,13 @@ class SimulatedSensor:
         if self.lidar_url is not None:
             return self
         if self.transport == "tcp":
-            self.lidar_url = self.scip.serve_tcp()
-            self.servo_url = self.dxl.serve_tcp()
+            try:
+                self.lidar_url = self.scip.serve_tcp(self.host, self.lidar_port)
+                self.servo_url = self.dxl.serve_tcp(self.host, self.servo_port)
+            except BaseException:
+                self.close()
+                self.lidar_url = self.servo_url = None
+                raise
         else:
             self.lidar_url = self.scip.serve_pty()
             self.servo_url = self.dxl.serve_pty()
