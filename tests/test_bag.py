@@ -420,3 +420,31 @@ def test_disk_full_while_recording_is_one_line(tmp_path, storage):
     assert n > 0 and len(back.scans) >= n
     _, cloud = replay_bag(out)
     assert len(cloud) > 0
+
+
+@pytest.mark.slow
+def test_record_force_and_json(tmp_path, capsys):
+    """One overwrite policy: an existing --out is refused unless --force, and --force
+    replaces only a bag folder; --json summarises what was written."""
+    out = tmp_path / "bag"
+    args = ["record", "--out", str(out), "--scans", "3", "--sim-rate", "5"]
+    assert main(args + ["--storage", "sqlite3"]) == 0
+    capsys.readouterr()
+    assert main(args) == 2
+    assert "--force" in capsys.readouterr().err
+    assert main(args + ["--force", "--json"]) == 0
+    j = json.loads(capsys.readouterr().out)
+    assert j["storage"] == "mcap" and j["scans"] == 3 and j["point_clouds"] == 3
+    assert j["bag_points"] > 1000 and j["epoch_offset_ns"] > Y2000_NS
+    assert sorted(f.suffix for f in out.iterdir()) == [".mcap", ".yaml"]  # sqlite3 bag replaced
+    other = tmp_path / "photos"
+    other.mkdir()
+    (other / "a.jpg").write_bytes(b"x")
+    assert main(["record", "--out", str(other), "--scans", "3", "--force"]) == 2
+    assert "bag folder" in capsys.readouterr().err and (other / "a.jpg").exists()
+    with pytest.raises(SystemExit) as e:  # argparse: a usage error, before any work
+        main(["record", "--out", str(tmp_path / "x"), "--seconds", "inf"])
+    assert e.value.code == 2 and "--seconds" in capsys.readouterr().err
+    (tmp_path / "c.ply").write_bytes(b"")
+    assert main(["replay", str(out), "--out", str(tmp_path / "c.ply")]) == 2
+    assert main(["replay", str(out), "--out", str(tmp_path / "c.ply"), "--force"]) == 0

@@ -330,3 +330,33 @@ def test_format1_sqlite3_bag_still_replays(tmp_path):
     assert code == 0
     j = json.loads(out)
     assert j["format"] == 1 and j["scans"] == 4 and j["points"] > 1000
+
+
+def test_mirror_joint_tf_is_the_lift_rotation_about_the_hinge():
+    """/tf of a mirror at a lift-servo angle = the rest pose turned about the joint's x
+    axis; checked against MirrorPatch.rotated_about_hinge (geometry.py, the one place
+    mirror rotations live) at deployed, half-way and lifted."""
+    from nodlidar.runtime.actuators import MirrorLiftProfile
+    from nodlidar.solver import solve
+    from nodlidar.spec import load_design
+
+    design = solve(load_design(PAPER_DESIGN))
+    prof = MirrorLiftProfile(deployed_rad=0.2, lifted_rad=1.7)
+    hz, lift = design.spec.mirror.hinge_z_m, design.spec.mirror.lift_angle_rad
+    for (name, R0, t0), m in zip(ros.mirror_joint_frames(design.patches()), design.patches()):
+        for servo, frac in ((0.2, 0.0), (0.95, 0.5), (1.7, 1.0)):
+            a = float(ros.mirror_joint_angle(servo, prof, hz, lift))
+            # conventions: lifted = -sign(hinge_z) * lift_angle about the hinge
+            assert_allclose(a, -np.sign(hz) * lift * frac, atol=1e-12)
+            q = ros.quat_mul(ros.quaternion(R0), ros.quat_axis(0, a))
+            x, y, z, w = q
+            R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                          [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                          [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+            moved = m.rotated_about_hinge(a)
+            # the glass face in the joint frame (y = 0 plane) maps onto the moved patch
+            corner = np.array([m.s_max, 0.0, m.z_max - m.hinge_z])
+            p_tf = R @ corner + t0
+            p_geo = moved.origin_ + m.s_max * moved.along_ + m.z_max * moved.up_
+            assert_allclose(p_tf, p_geo, atol=1e-12), name
+            assert_allclose(R[:, 1], -moved.normal_, atol=1e-12)  # +y away from the lidar

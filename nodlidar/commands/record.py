@@ -16,7 +16,11 @@ from __future__ import annotations
 import json
 
 from ..errors import ParameterError
+from ._args import add_force_arg, bounded_float, bounded_int, check_output_path
 from ._runtime_args import add_device_args, add_frame_args, check_out, frame_kwargs, session_from_args
+
+# what a bag directory holds (recorded or repaired): --force replaces only such a folder
+_BAG_FILES = ("metadata.yaml", ".mcap", ".db3", ".db3-journal", ".db3-wal", ".db3-shm", ".tmp")
 
 
 def register(sub) -> None:
@@ -25,8 +29,11 @@ def register(sub) -> None:
     add_device_args(p)
     p.add_argument("--out", required=True, metavar="DIR", help="bag directory to create")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--scans", type=int, default=None, metavar="N", help="stop after N scans")
-    g.add_argument("--seconds", type=float, default=None, metavar="S",
+    # bounded: a week of scans or seconds at most (--seconds inf would never stop)
+    g.add_argument("--scans", type=bounded_int(1, 10**8), default=None, metavar="N",
+                   help="stop after N scans")
+    g.add_argument("--seconds", type=bounded_float(0, 7 * 86400, lo_open=True, unit="s"),
+                   default=None, metavar="S",
                    help="stop after S seconds (session clock; default 10 s if no --scans)")
     p.add_argument("--lift", action="store_true", help="lift the mirrors while recording")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
@@ -35,14 +42,24 @@ def register(sub) -> None:
                    help="also assemble the recording live and write it (.ply/.pcd)")
     p.add_argument("--json", action="store_true",
                    help="print a JSON summary (bag, storage, scans, samples, points...)")
+    add_force_arg(p)
     add_frame_args(p)
     p.set_defaults(func=run)
 
 
+def _check_bag_folder(d) -> None:
+    """--force on an existing --out replaces it only if it is a bag folder (nothing but a
+    bag's files), never another directory."""
+    files = list(d.iterdir())
+    if not all(f.is_file() and f.name.endswith(_BAG_FILES) for f in files):
+        raise ParameterError("--out", str(d), "a new directory, or with --force an existing "
+                             "bag folder (this one holds other files)")
+
+
 def run(args) -> int:
     import inspect
+    import shutil
     import sys
-    from pathlib import Path
 
     from ..runtime.bag import BagRecorder, BagWriteError
     from ..runtime.cloud import write_cloud
@@ -53,10 +70,11 @@ def run(args) -> int:
     if args.seconds is not None and not args.seconds > 0:
         raise ParameterError("--seconds", args.seconds, "> 0")
     if args.cloud:
-        check_out(args.cloud, "--cloud")
+        check_out(args.cloud, "--cloud", force=args.force)
     kw = frame_kwargs(args)
-    if Path(args.out).exists():
-        raise ParameterError("--out", args.out, "a directory that does not exist yet")
+    out = check_output_path(args.out, force=args.force, kind="directory")
+    if out.exists():
+        _check_bag_folder(out)
     seconds = args.seconds if args.seconds is not None or args.scans is not None else 10.0
 
     def stop(scans, _nod):
@@ -71,6 +89,8 @@ def run(args) -> int:
     try:
         with session_from_args(args) as s:
             cal_toml = s.calibration_path.read_text() if s.calibration_path else None
+            if out.exists():  # --force on a bag folder (checked above): replaced now
+                shutil.rmtree(out)
             rec = BagRecorder(args.out, s.design_path.read_text(), calibration_toml=cal_toml,
                               lift_left=s.lift_left, lift_right=s.lift_right,
                               storage=args.storage, clock=s.time_source,

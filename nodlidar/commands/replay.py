@@ -13,6 +13,7 @@ import json
 import sys
 
 from ..errors import DesignFileError
+from ._args import add_force_arg
 from ._runtime_args import add_frame_args, check_out, frame_kwargs
 
 
@@ -26,6 +27,7 @@ def register(sub) -> None:
                    help="fail (exit 2) if any message in the bag cannot be decoded")
     p.add_argument("--json", action="store_true",
                    help="print a JSON summary (bag, storage, scans, points, skipped...)")
+    add_force_arg(p)
     add_frame_args(p)
     p.set_defaults(func=run)
 
@@ -35,7 +37,7 @@ def run(args) -> int:
     from ..runtime.cloud import write_cloud
 
     if args.out:
-        check_out(args.out)
+        check_out(args.out, force=args.force)
     contents, cloud = replay_bag(args.bag, **frame_kwargs(args))
     n_skipped = sum(contents.skipped.values())
     detail = ", ".join(f"{k}: {v}" for k, v in sorted(contents.skipped.items()))
