@@ -54,6 +54,8 @@ __all__ = [
     "quantise_ranges",
     "cluster_ranges",
     "RANGE_CODES",
+    "STEP_TABLE_MAX",
+    "OUTSIDE_AREA_CODE",
 ]
 
 RangeSource = Callable[[int, float], np.ndarray]
@@ -68,6 +70,19 @@ RANGE_CODES: dict[str, tuple[int, int, int]] = {
 }
 
 _BITRATES = ("019200", "038400", "057600", "115200", "250000", "500000", "750000")
+
+#: Last step a GD/GS/MD/MS request may name, per model. Source: the step table of the SCIP
+#: 2.0 specification (Hokuyo C-42-03320B) as cited in issue 15 - steps 0..768 for the
+#: URG-04LX (ARES 1024; the measurable area AMIN..AMAX = 44..725 lies inside it); the
+#: UTM-30LX and UST-10LX tables end at their AMAX (1080). Steps requested outside
+#: AMIN..AMAX carry :data:`OUTSIDE_AREA_CODE`.
+STEP_TABLE_MAX: dict[str, int] = {"URG-04LX": 768, "UTM-30LX": 1080, "UST-10LX": 1080}
+#: Error code of a requested step outside the measurable area: 19, "non-measurable step"
+#: in the spec's URG-04LX error-code table (SPEC p.12, Table 3; scip2.md §1.7).
+OUTSIDE_AREA_CODE = 19
+#: Firmware that has ``HS`` (>= 3.2.00) and ``DB`` (>= 3.3.00) (scip2.md §1.8); the
+#: emulator reports 3.4.03, the firmware of the real UG01 captures.
+_HS_MODELS = ("URG-04LX",)
 
 
 def constant_source(model: LidarModel, range_m: float = 1.0) -> RangeSource:
@@ -142,6 +157,8 @@ class EmulatorStats:
 
     connections: int = 0
     commands: int = 0
+    #: command lines whose immediate replies have all been written (transports only)
+    commands_answered: int = 0
     messages_sent: int = 0
     scans_sent: int = 0
     scans_skipped: int = 0
@@ -149,6 +166,10 @@ class EmulatorStats:
     bytes_corrupted: int = 0
     stalls: int = 0
     disconnects: int = 0
+    #: TCP connections refused because another host holds the session
+    refused_connections: int = 0
+    #: command lines longer than ``max_line_bytes``, dropped (answered 0D)
+    long_lines: int = 0
     #: wall-clock (time.monotonic) instants the link came back after a disconnect
     up_times: list[float] = field(default_factory=list)
     #: wall-clock (time.monotonic) instants a stall would end (the device resumes
@@ -198,6 +219,7 @@ class ScipDevice:
             vendor="Hokuyo Automatic Co.,Ltd.", product=f"SOKUIKI Sensor {model.name}",
             firmware="3.4.03(17/Dec./2012)", protocol="SCIP 2.0", serial="H0000001")
         self.period_s = model.scan_period_s
+        self.max_step = max(STEP_TABLE_MAX.get(model.name, model.step_max), model.step_max)
         self.max_backlog_scans = int(max_backlog_scans)
         self._timer_base_ms = -int(timer_offset_ms)
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
@@ -212,6 +234,8 @@ class ScipDevice:
         self.adjust_mode = False
         self.bitrate = "019200"
         self.motor_level = 0
+        self.high_sensitivity = False
+        self.malfunction: int | None = None  # DB: the simulated malfunction number
         self.stream: _Stream | None = None
         self._pending_gd: list[tuple[int, scip.DistanceRequest]] = []
 
@@ -252,7 +276,13 @@ class ScipDevice:
         m = self.model
         q = quantise_ranges(self.source_ranges_m(k), self.params.dmin_mm, self.params.dmax_mm,
                             request.n_chars, self.codes)
-        sel = q[request.start - m.step_min: request.end - m.step_min + 1]
+        if request.start < m.step_min or request.end > m.step_max:
+            # steps of the spec's table outside the measurable area: error code
+            full = np.full(self.max_step + 1, OUTSIDE_AREA_CODE, dtype=np.int64)
+            full[m.step_min: m.step_max + 1] = q
+            sel = full[request.start: request.end + 1]
+        else:
+            sel = q[request.start - m.step_min: request.end - m.step_min + 1]
         return cluster_ranges(sel, request.cluster, self.params.dmin_mm)
 
     def _scan_message(self, k: int, req: scip.DistanceRequest, status: str,
@@ -355,13 +385,39 @@ class ScipDevice:
                 return reply("02")
             self.motor_level = 0 if level == 99 else level
             return reply("00")
+        if code == "HS":  # high sensitivity 0/1, URG-04LX firmware >= 3.2.00 (SPEC §8)
+            if len(params) != 1:
+                return reply("0C" if not params else "0D")
+            if self.model.name not in _HS_MODELS:
+                return reply("03")
+            if params not in ("0", "1"):
+                return reply("01")
+            if (params == "1") == self.high_sensitivity:
+                return reply("02")
+            self.high_sensitivity = params == "1"
+            return reply("00")
+        if code == "DB":
+            # simulate malfunction 01-05, 10 ends it (URG-04LX firmware >= 3.3.00); the
+            # reference gives no more than the accepted parameters and statuses 00-05, so
+            # the emulator records the state (II STAT shows it) and keeps scanning
+            if len(params) != 2:
+                return reply("0C" if len(params) < 2 else "0D")
+            if not params.isdigit():
+                return reply("01")
+            n = int(params)
+            if n == 10:
+                self.malfunction = None
+                return reply("00")
+            if not 1 <= n <= 5:
+                return reply("01")
+            self.malfunction = n
+            return reply("00")
         if code in ("GD", "GS", "MD", "MS"):
             try:
                 req = scip.DistanceRequest.parse(echo)
             except scip.ScipRequestError as e:
                 return reply(e.status)
-            m = self.model
-            if req.start < m.step_min or req.end > m.step_max:
+            if req.end > self.max_step:  # the step table, not AMIN..AMAX (see STEP_TABLE_MAX)
                 return reply("04")
             k_next = math.ceil(now / self.period_s - 1e-9)
             if not req.is_multi:
@@ -385,7 +441,9 @@ class ScipDevice:
             else f"Level {self.motor_level}",
             measure_mode="Measuring by Sensitive Mode" if streaming else "IDLE",
             bitrate=f"{int(self.bitrate)}[bps]" + (default if self.bitrate == "019200" else ""),
-            time=f"{self.timer_ms(now):06X}", status="Sensor works well.")
+            time=f"{self.timer_ms(now):06X}",
+            status="Sensor works well." if self.malfunction is None
+            else f"Simulated malfunction {self.malfunction:02d} (DB).")
 
     # -- scans -----------------------------------------------------------------------
     def next_due(self) -> float | None:
@@ -492,18 +550,39 @@ class ScipEmulator:
     reboot_resets_timer : bool
         A disconnect is a power cycle: the device comes back with its timer restarted at
         0 (a real URG unplugged and plugged in). Default False: the timer runs on.
+    host : str
+        Address :meth:`serve_tcp` listens on by default (loopback).
+    port : int
+        TCP port :meth:`serve_tcp` listens on by default (0 = any free port; a real
+        Ethernet URG uses 10940).
+    max_line_bytes : int
+        Longest command line kept [bytes]. A longer one is dropped up to its line end and
+        answered at once with status ``0D`` (command too long), its echo cut to 64
+        characters; the longest valid SCIP 2.0 command is 32 bytes.
     **device_kw
         Passed to :class:`ScipDevice` (``timer_offset_ms``, ``codes``, ...).
 
     Notes
     -----
     Nothing is opened in the constructor; call :meth:`serve_tcp` or :meth:`serve_pty`
-    (one transport per emulator), and :meth:`stop` or use ``with``.
+    (one transport per emulator), and :meth:`stop` or use ``with``. Over TCP one host at
+    a time holds the session (as a real Ethernet URG): a second connection is closed at
+    once (``stats.refused_connections``) unless the first host has hung up.
     """
 
     def __init__(self, model: LidarModel | None = None, clock: SimClock | None = None,
                  range_source: RangeSource | None = None, *, faults: FaultConfig | None = None,
-                 scip1: bool = False, reboot_resets_timer: bool = False, **device_kw):
+                 scip1: bool = False, reboot_resets_timer: bool = False,
+                 host: str = "127.0.0.1", port: int = 0, max_line_bytes: int = 256,
+                 **device_kw):
+        require(isinstance(host, str) and bool(host), "emulator.host", host,
+                "an address such as 127.0.0.1")
+        require(isinstance(port, int) and not isinstance(port, bool) and 0 <= port <= 65535,
+                "emulator.port", port, "an integer 0..65535 (0 = any free port)")
+        require(isinstance(max_line_bytes, int) and 32 <= max_line_bytes <= 1 << 20,
+                "emulator.max_line_bytes", max_line_bytes, "an integer 32..1048576")
+        self.host, self.tcp_port = host, port
+        self.max_line_bytes = max_line_bytes
         self.model = model or lidar_model("URG-04LX")
         self.reboot_resets_timer = bool(reboot_resets_timer)
         self.clock = clock or SimClock()
@@ -515,6 +594,8 @@ class ScipEmulator:
         self._lock = threading.Lock()
         self._session_stop: threading.Event | None = None
         self._session_thread: threading.Thread | None = None
+        self._session_sock: socket.socket | None = None
+        self._sent = threading.Condition()  # notified after every message and session end
         self._down_until = -math.inf
         self._listener: socket.socket | None = None
         self.url: str | None = None
@@ -525,12 +606,16 @@ class ScipEmulator:
         self._up_pending = False
 
     # -- public -----------------------------------------------------------------------
-    def serve_tcp(self, host: str = "127.0.0.1", port: int = 0) -> str:
-        """Listen on ``host:port`` (0 = any free port); return ``socket://host:port``.
+    def serve_tcp(self, host: str | None = None, port: int | None = None) -> str:
+        """Listen on ``host:port`` (default the constructor's ``host`` and ``port``; port 0
+        = any free port); return ``socket://host:port``.
 
-        One client at a time: a new connection replaces the previous one.
+        One client at a time: while a host holds the session, a new connection is
+        refused (closed at once); once that host has hung up, the next one is served.
         """
         self._check_unused()
+        host = self.host if host is None else host
+        port = self.tcp_port if port is None else port
         ls = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         ls.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         ls.bind((host, port))
@@ -594,6 +679,18 @@ class ScipEmulator:
         """Scan number of an (unwrapped) device timestamp [ms]."""
         return self.device.scan_index(timestamp_ms)
 
+    def wait_for(self, predicate: Callable[[EmulatorStats], bool], timeout: float = 5.0
+                 ) -> bool:
+        """Block until ``predicate(self.stats)`` holds (checked after every message the
+        emulator sends, connection change and session end); False after ``timeout`` [s,
+        wall]. For tests: wait on what the device did instead of sleeping."""
+        with self._sent:
+            return self._sent.wait_for(lambda: predicate(self.stats), timeout)
+
+    def _notify(self) -> None:
+        with self._sent:
+            self._sent.notify_all()
+
     def expected_ranges_mm(self, k: int, request: scip.DistanceRequest) -> np.ndarray:
         """Ground truth of scan ``k`` as the device encodes it for ``request``."""
         return self.device.expected_ranges_mm(k, request)
@@ -628,6 +725,7 @@ class ScipEmulator:
         dev = self.device
         clock = self.clock
         buf = bytearray()
+        skipping = False  # inside an over-long line: drop bytes up to its end
         try:
             while not stop.is_set() and not self._stop.is_set():
                 due = dev.next_due()
@@ -639,12 +737,25 @@ class ScipEmulator:
                     while True:
                         i = buf.find(b"\n")
                         if i < 0:
+                            if len(buf) > self.max_line_bytes:  # bounded: answer now
+                                if not skipping and not self._too_long(link, buf, stop):
+                                    return
+                                skipping = True
+                                buf.clear()
                             break
+                        if skipping or i > self.max_line_bytes:
+                            if not skipping and not self._too_long(link, buf[:i], stop):
+                                return
+                            skipping = False
+                            del buf[: i + 1]
+                            continue
                         line = bytes(buf[:i])
                         del buf[: i + 1]
                         for msg in dev.handle_line(line, clock.now()):
                             if not self._emit(link, msg, False, stop):
                                 return
+                        self.stats.commands_answered += 1
+                        self._notify()  # the command is processed (wait_for)
                 for msg in dev.poll(clock.now()):
                     if not self._emit(link, msg, True, stop):
                         return
@@ -652,6 +763,14 @@ class ScipEmulator:
             pass
         finally:
             on_end()
+            self._notify()
+
+    def _too_long(self, link: _FdLink, line: bytes | bytearray, stop: threading.Event) -> bool:
+        """Answer an over-long command line with ``0D`` (echo: its first 64 characters,
+        non-printable bytes as ``?``); False if the link went down."""
+        self.stats.long_lines += 1
+        head = bytes(c if 0x20 <= c < 0x7F else 0x3F for c in bytes(line[:64]))
+        return self._emit(link, scip.encode_message(head, "0D"), False, stop)
 
     def _emit(self, link: _FdLink, msg: bytes, is_scan: bool, stop: threading.Event) -> bool:
         """Send one message through the fault layer; False if the link went down."""
@@ -672,6 +791,7 @@ class ScipEmulator:
                 return False
         link.write(act.data)
         st.messages_sent += 1
+        self._notify()
         return True
 
     def _go_down(self, down_s: float) -> None:
@@ -700,6 +820,11 @@ class ScipEmulator:
             if self.clock.now() < self._down_until:
                 conn.close()  # the device is away: refuse the host
                 continue
+            if self._session_busy():
+                self.stats.refused_connections += 1  # counted before the host can see it
+                conn.close()  # one host at a time (a real Ethernet URG)
+                self._notify()
+                continue
             if self._up_pending:
                 self._up_pending = False
                 self.stats.up_times.append(time.monotonic())
@@ -707,7 +832,22 @@ class ScipEmulator:
             self.stats.connections += 1
             stop = threading.Event()
             link = _FdLink(conn.fileno(), stop, sock=conn)
+            self._session_sock = conn
             self._start_session(link, stop, conn.close)
+            self._notify()
+
+    def _session_busy(self) -> bool:
+        """Does a live host hold the TCP session? (False once it has hung up, even if
+        the session thread has not noticed yet, e.g. inside a stall.)"""
+        t, sock = self._session_thread, self._session_sock
+        if t is None or not t.is_alive() or sock is None:
+            return False
+        try:
+            p = select.poll()
+            p.register(sock.fileno(), select.POLLRDHUP | select.POLLHUP | select.POLLERR)
+            return not p.poll(0)
+        except (OSError, ValueError):  # closed meanwhile
+            return False
 
     # pty ----------------------------------------------------------------------------
     def _open_pty(self) -> None:
