@@ -274,7 +274,11 @@ class DynamixelBus:
             No (complete) reply after all retries, or the line failed.
         """
         frame = packet.encode()
-        what = f"{Instruction(packet.instruction).name} to id {packet.id}"
+        try:
+            name = Instruction(packet.instruction).name
+        except ValueError:  # an instruction this module has no name for
+            name = f"instruction 0x{packet.instruction:02X}"
+        what = f"{name} to id {packet.id}"
         last: Exception | None = None
         with self._lock:
             if self._ser is None:
