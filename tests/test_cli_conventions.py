@@ -90,9 +90,12 @@ def test_docs_list_every_command():
 
 def test_exit_status_of_a_usage_error_and_a_missing_port(capsys, tmp_path):
     assert main(["scan", "--out", str(tmp_path / "x.txt")]) == 2           # bad input
+    (tmp_path / "x.ply").write_bytes(b"")
+    assert main(["scan", "--out", str(tmp_path / "x.ply")]) == 2           # exists, no --force
     assert main(["info", "--port", str(tmp_path / "no-such-tty")]) == 1    # the system refused
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and all(line.startswith("nodlidar ") for line in err)
+    assert len(err) == 3 and all(line.startswith("nodlidar ") for line in err)
+    assert "--force" in err[1]
 
 
 @pytest.mark.slow
@@ -143,7 +146,7 @@ def test_scan_json_matches_the_file(tmp_path, capsys):
 
 
 def test_report_json(tmp_path, capsys):
-    assert main(["-q", "report", str(PAPER), "--out", str(tmp_path), "--samples", "40",
+    assert main(["-q", "report", str(PAPER), "--out", str(tmp_path / "r"), "--samples", "40",
                  "--workers", "0", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert Path(out["html"]).is_file() and Path(out["markdown"]).is_file()

@@ -20,7 +20,8 @@ N_FIGURES = 9
 @pytest.fixture(scope="module")
 def report_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("report")
-    assert main(["report", str(PAPER), "--out", str(out), "--samples", "300", "--workers", "0"]) == 0
+    assert main(["report", str(PAPER), "--out", str(out), "--samples", "300", "--workers", "0",
+                 "--force"]) == 0   # mktemp made the directory
     return out
 
 
@@ -66,9 +67,14 @@ def test_report_default_out_dir(tmp_path, monkeypatch, capsys):
     assert html.is_file() and "out/report/urg04lx-paper/report.html" in out
 
 
-def test_report_bad_input(capsys):
-    assert main(["report", str(PAPER), "--samples", "0"]) == 2
+def test_report_bad_input(capsys, tmp_path):
+    with pytest.raises(SystemExit) as exc:   # argparse: bounded integer
+        main(["report", str(PAPER), "--samples", "0"])
+    assert exc.value.code == 2
     assert main(["report", "missing.toml"]) == 2
+    # an existing output directory is refused before the Monte Carlo (one --force policy)
+    assert main(["report", str(PAPER), "--out", str(tmp_path), "--samples", "10"]) == 2
+    assert "--force" in capsys.readouterr().err and not list(tmp_path.iterdir())
 
 
 def test_tolerance_cli_json(capsys):

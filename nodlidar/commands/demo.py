@@ -112,7 +112,7 @@ def run(args) -> int:
     sim = ["--design", design_arg, "--sim-rate", "4", "--perturb", "table1"]
     if "scan" not in args.skip:
         steps.start("simulated sensor: one nod sweep, mirrors deployed, as built (Table I), uncalibrated")
-        command(["scan", *sim, "--out", str(out / "scan_uncalibrated.ply")])
+        command(["scan", *sim, "--force", "--out", str(out / "scan_uncalibrated.ply")])
         steps.output("point cloud", out / "scan_uncalibrated.ply", echo=False)
 
     if "calibrate" not in args.skip:
@@ -124,7 +124,7 @@ def run(args) -> int:
         steps.output("calibration plot", out / "calibration.png", echo=False)
         if "scan" not in args.skip:
             steps.start("simulated sensor: the same sweep through the calibration")
-            command(["scan", *sim, "--calibration", str(cal), "--out", str(out / "scan.ply")])
+            command(["scan", *sim, "--force", "--calibration", str(cal), "--out", str(out / "scan.ply")])
             steps.output("calibrated cloud", out / "scan.ply", echo=False)
 
     if "study" not in args.skip:

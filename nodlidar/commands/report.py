@@ -8,15 +8,17 @@ other placement method, and writes ``report.html``, ``report.md`` (figures in
 
 from __future__ import annotations
 
+from ._args import add_force_arg, bounded_int
+
 
 def register(sub) -> None:
     p = sub.add_parser("report", help="write the design report (HTML + Markdown)",
                        description=__doc__)
     p.add_argument("design", help="design TOML file, e.g. design/urg04lx-paper.toml")
     p.add_argument("--out", help="output directory (default out/report/<design name>/)")
-    p.add_argument("--samples", type=int, help="Monte Carlo samples (default: [tolerance])")
-    p.add_argument("--seed", type=int, help="Monte Carlo seed (default: [tolerance])")
-    p.add_argument("--workers", type=int,
+    p.add_argument("--samples", type=bounded_int(1), help="Monte Carlo samples (default: [tolerance])")
+    p.add_argument("--seed", type=bounded_int(0), help="Monte Carlo seed (default: [tolerance])")
+    p.add_argument("--workers", type=bounded_int(0),
                    help="0: in process; N: a local Dask cluster of N worker processes "
                         "(default: in process up to 20000 samples)")
     p.add_argument("--scheduler", metavar="ADDR", help="run the Monte Carlo on this Dask scheduler")
@@ -24,6 +26,7 @@ def register(sub) -> None:
                    help="print one JSON object: the files written and the report's summary")
     p.add_argument("--explore", metavar="JSON",
                    help="add the design-space section from an explore.json of nodlidar explore")
+    add_force_arg(p)
     p.set_defaults(func=run)
 
 
@@ -52,12 +55,16 @@ def run(args) -> int:
     from ..analysis.report import compute_report, default_out_dir, write_report
     from ..errors import ParameterError
     from ..spec import load_design
+    from ._args import check_output_path
 
     if args.samples is not None and args.samples < 1:
         raise ParameterError("--samples", args.samples, "an integer >= 1")
     if args.workers is not None and args.workers < 0:
         raise ParameterError("--workers", args.workers, "an integer >= 0")
     spec = load_design(args.design)
+    if args.out is None:   # the default place: out/report/ is ours to create
+        default_out_dir(spec).parent.mkdir(parents=True, exist_ok=True)
+    out = check_output_path(args.out or default_out_dir(spec), force=args.force, kind="directory")
     exploration = None
     if getattr(args, "explore", None):
         from ..analysis.explore import load_exploration
@@ -70,7 +77,7 @@ def run(args) -> int:
                               exploration=exploration)
     finally:
         close()
-    paths = write_report(data, args.out or default_out_dir(spec))
+    paths = write_report(data, out)
     if args.json:
         import json
 

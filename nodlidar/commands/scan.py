@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ._args import add_force_arg, check_output_path
 from ._runtime_args import add_device_args, add_frame_args, check_out, frame_kwargs, session_from_args
 
 
@@ -23,6 +24,7 @@ def register(sub) -> None:
     p.add_argument("--lift", action="store_true", help="lift the mirrors (direct beams only)")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object (points, scans, nod range, frame, file, ...)")
+    add_force_arg(p)
     p.set_defaults(func=run)
 
 
@@ -30,6 +32,7 @@ def run(args) -> int:
     from ..runtime.cloud import write_cloud
 
     check_out(args.out)
+    check_output_path(args.out, force=args.force)   # before the sweep, not after it
     kw = frame_kwargs(args)
     with session_from_args(args) as s:
         cap = s.sweep(lift=args.lift)
