@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import require
 from .simdata import ScanPoints
-from .voxels import VoxelGrid, VoxelMap
+from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap
 
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch", "OnlineSegmenter"]
 
@@ -235,12 +235,23 @@ class OnlineSegmenter:
     """Scan-by-scan segmentation with the evidence gathered so far.
 
     ``update(scan)`` integrates the scan, then classifies it (a voxel hit now and traversed in an
-    earlier scan is inconsistent; one traversed only later is not known yet).
+    earlier scan is inconsistent; one traversed only later is not known yet). The map keeps
+    the last ``window_scans`` scans (:class:`~nodlidar.tracking.voxels.WindowVoxelMap`;
+    ``None``: every scan, a :class:`~nodlidar.tracking.voxels.VoxelMap` whose merge
+    re-sorts all of it).
     """
 
-    def __init__(self, cfg: SegmentConfig = SegmentConfig(), range_sigma=None) -> None:
+    def __init__(self, cfg: SegmentConfig = SegmentConfig(), range_sigma=None,
+                 window_scans: int | None = 60) -> None:
         self.cfg = cfg
-        self.map = new_map(cfg, range_sigma)
+        if window_scans is None:
+            self.map = new_map(cfg, range_sigma)
+        else:
+            # bounded map: the last window_scans scans' traversals (real time: the cost per
+            # scan does not grow with the explored area)
+            self.map = WindowVoxelMap(VoxelGrid(cfg.voxel_m), window_scans=window_scans,
+                                      margin_voxels=cfg.margin_voxels, range_sigma=range_sigma,
+                                      carve_no_return_m=cfg.carve_no_return_m)
 
     def update(self, scan: ScanPoints) -> Segmented:
         integrate(self.map, scan, self.cfg)

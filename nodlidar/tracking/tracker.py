@@ -322,38 +322,48 @@ class Tracker:
         if len(ids) and len(objs):
             rows, cols = linear_sum_assignment(cost)
             assign = {int(b): int(a) for a, b in zip(rows, cols) if cost[a, b] < big}
-        # a confirmed track left without a cluster whose prediction gates with a cluster
-        # another track took: two objects in one cluster (they touch in the top view, or
-        # one is partly behind the other); split the cluster between the two predictions
+        # a cluster that gates with other confirmed tracks' predictions too holds (part of)
+        # those objects (two people touching in the top view, or one partly behind the
+        # other): its points go to the nearest of the predictions
         objs, cents, times = list(objs), list(cents), list(times)
-        taken = set(assign.values())
-        for a, tid in enumerate(ids):
-            tr = self.tracks[tid]
-            if a in taken or len(tr.scans) < cfg.confirm_scans:
-                continue
-            cand = [(cost[a, b], b) for b in assign if cost[a, b] < big]
-            if not cand:
-                continue
-            b = min(cand)[1]
-            a2 = assign[b]
-            pa = np.asarray(priors[a, b].state_vector, float).ravel()[[0, 2]]
-            pb = np.asarray(priors[a2, b].state_vector, float).ravel()[[0, 2]]
+        confirmed = [a for a, tid in enumerate(ids)
+                     if len(self.tracks[tid].scans) >= cfg.confirm_scans]
+        for b, a0 in list(assign.items()):
             idx = objs[b]
             xy = scan.points[idx, :2]
-            mine = (np.linalg.norm(xy - pa, axis=1) < np.linalg.norm(xy - pb, axis=1))
-            if mine.sum() < 3 or (~mine).sum() < 3:
+            others = []
+            for a in confirmed:
+                if a == a0 or float(np.hypot(*(cents[b] - self.tracks[ids[a]].x[:2]))) > cfg.gate_m:
+                    continue
+                if (a, b) not in priors:
+                    priors[a, b] = self._predict(self.tracks[ids[a]], times[b])
+                pa = np.asarray(priors[a, b].state_vector, float).ravel()[[0, 2]]
+                # the prediction lies on (or just in front of) the cluster's points
+                if float(np.min(np.linalg.norm(xy - pa, axis=1))) <= cfg.merge_m:
+                    others.append(a)
+            if not others:
                 continue
-            objs[b] = idx[~mine]
-            cents[b] = xy[~mine].mean(axis=0)
-            objs.append(idx[mine])
-            cents.append(xy[mine].mean(axis=0))
-            times.append(float(scan.t_s[idx[mine]].mean()))
-            nb = len(objs) - 1
-            assign[nb] = a
-            priors[a, nb] = priors[a, b]
-            taken.add(a)
+            cand = [a0] + others
+            pred = np.array([np.asarray(priors[a, b].state_vector, float).ravel()[[0, 2]]
+                             for a in cand])
+            near = np.argmin(np.linalg.norm(xy[:, None, :] - pred[None], axis=2), axis=1)
+            for j, a in enumerate(cand[1:], start=1):
+                sel = near == j
+                if sel.sum() < 3 or (near == 0).sum() < 3:
+                    continue
+                objs.append(idx[sel])
+                cents.append(xy[sel].mean(axis=0))
+                times.append(float(scan.t_s[idx[sel]].mean()))
+                assign[len(objs) - 1] = a
+                priors[a, len(objs) - 1] = priors[a, b]
+                keep = near != j
+                idx, xy, near = idx[keep], xy[keep], near[keep]
+            objs[b] = idx
+            cents[b] = xy.mean(axis=0)
         # leftovers near a track's assigned cluster are pieces of the same object
-        members: dict[int, list[int]] = {a: [b] for b, a in assign.items()}
+        members: dict[int, list[int]] = {}
+        for b, a in assign.items():
+            members.setdefault(a, []).append(b)
         births = []
         for b in range(len(objs)):
             if b in assign:

@@ -207,3 +207,61 @@ class VoxelMap:
     def free_count(self, points: np.ndarray) -> np.ndarray:
         """(n,) int: how many scans traversed each point's voxel."""
         return self.free.lookup(self.grid.keys(points))[1]
+
+
+class WindowVoxelMap(VoxelMap):
+    """A :class:`VoxelMap` for online use whose size and per-scan cost are bounded: it keeps
+    the traversed voxels of the last ``window_scans`` scans only, one sorted key array per
+    scan (a ring), instead of one map of everything ever seen.
+
+    Adding a scan costs O(new keys log new keys) (its own sort; nothing is re-merged) and
+    dropping the oldest scan O(1), so the cost does not grow with the explored area; a query
+    is one binary search per kept scan (``window_scans`` vectorised searches). Evidence older
+    than the window is forgotten: a voxel traversed more than ``window_scans`` scans ago and
+    occupied now is not inconsistent - the window must outlast the nod's period (every
+    height is swept again within one nod cycle; the default 60 scans is 6 s).
+    Hits are not kept (the online segmentation only asks about traversals).
+    """
+
+    def __init__(self, grid: VoxelGrid, *, window_scans: int = 60, **kw) -> None:
+        super().__init__(grid, **kw)
+        require(window_scans >= 1, "window_scans", window_scans, ">= 1")
+        self.window_scans = int(window_scans)
+        self._scans: list[int] = []
+        self._keys: list[np.ndarray] = []
+
+    @property
+    def n_keys(self) -> int:
+        """Traversed (scan, voxel) entries kept."""
+        return int(sum(len(k) for k in self._keys))
+
+    def integrate(self, scan: int, points, start, direction, range_m, offset_m) -> None:
+        fk = self.free_keys(start, direction, range_m, offset_m)  # sorted, unique
+        self._scans.append(int(scan))
+        self._keys.append(fk)
+        while len(self._scans) > self.window_scans:
+            self._scans.pop(0)
+            self._keys.pop(0)
+
+    def inconsistent(self, points: np.ndarray, scan, min_scan_gap: int = 1) -> np.ndarray:
+        keys = self.grid.keys(points)
+        k = np.asarray(scan)
+        out = np.zeros(len(keys), bool)
+        for s, fk in zip(self._scans, self._keys):
+            if not len(fk):
+                continue
+            far = (s <= k - min_scan_gap) | (s >= k + min_scan_gap)
+            if not np.any(far):
+                continue
+            i = np.minimum(np.searchsorted(fk, keys), len(fk) - 1)
+            out |= far & (fk[i] == keys)
+        return out
+
+    def free_count(self, points: np.ndarray) -> np.ndarray:
+        keys = self.grid.keys(points)
+        n = np.zeros(len(keys), np.int64)
+        for fk in self._keys:
+            if len(fk):
+                i = np.minimum(np.searchsorted(fk, keys), len(fk) - 1)
+                n += fk[i] == keys
+        return n
