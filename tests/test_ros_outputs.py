@@ -360,3 +360,29 @@ def test_mirror_joint_tf_is_the_lift_rotation_about_the_hinge():
             p_geo = moved.origin_ + m.s_max * moved.along_ + m.z_max * moved.up_
             assert_allclose(p_tf, p_geo, atol=1e-12), name
             assert_allclose(R[:, 1], -moved.normal_, atol=1e-12)  # +y away from the lidar
+
+
+def test_cdr_template_bytes_equal_the_typestore():
+    """The batched JointState/TF serialisation is byte for byte the typestore's."""
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+
+    def js(v):
+        return T["sensor_msgs/msg/JointState"](
+            header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+                sec=v["sec"], nanosec=v["nsec"]), frame_id=""), name=["nod"],
+            position=np.array([v["pos"]]), velocity=np.zeros(0), effort=np.zeros(0))
+
+    tmpl = ros.CdrTemplate(ts, "sensor_msgs/msg/JointState", js,
+                           {"sec": "<i4", "nsec": "<u4", "pos": "<f8"})
+    rng = np.random.default_rng(7)
+    sec = rng.integers(1_700_000_000, 1_900_000_000, 20)
+    nsec = rng.integers(0, 10**9, 20)
+    pos = rng.normal(0, 1, 20)
+    rows = tmpl.batch(sec=sec, nsec=nsec, pos=pos)
+    for i in range(20):
+        ref = ts.serialize_cdr(js({"sec": int(sec[i]), "nsec": int(nsec[i]), "pos": pos[i]}),
+                               "sensor_msgs/msg/JointState")
+        assert rows[i].tobytes() == bytes(ref)

@@ -57,12 +57,10 @@ def _check_bag_folder(d) -> None:
 
 
 def run(args) -> int:
-    import inspect
     import shutil
     import sys
 
     from ..runtime.bag import BagRecorder, BagWriteError
-    from ..runtime.cloud import write_cloud
     from ..runtime.session import record_capture
 
     if args.scans is not None and args.scans < 1:
@@ -82,10 +80,6 @@ def run(args) -> int:
             return len(scans) >= args.scans
         return scans[-1].stamp_s - scans[0].stamp_s >= seconds
 
-    # the session's record_capture streams the live cloud itself when it can (bounded
-    # memory); an older one returns the capture to assemble here
-    streams = "cloud" in inspect.signature(record_capture).parameters
-    n_cloud = None
     try:
         with session_from_args(args) as s:
             cal_toml = s.calibration_path.read_text() if s.calibration_path else None
@@ -98,20 +92,14 @@ def run(args) -> int:
                                      "simulated": s.simulated,
                                      "clock_offset_s": s.urg.clock_sync.offset_s})
             with rec:
-                if streams and args.cloud:
-                    res = record_capture(s, rec, stop, lift=args.lift, cloud=args.cloud,
-                                         assemble_kw=kw)
-                    n_cloud = res.cloud_points
-                else:
-                    cap = record_capture(s, rec, stop, lift=args.lift)
+                # the live cloud is assembled scan by scan and streamed to the file
+                res = record_capture(s, rec, stop, lift=args.lift, cloud=args.cloud,
+                                     assemble_kw=kw)
+            n_cloud = res.cloud_points
             if not args.json:
                 print(f"recorded {rec.scans} scans and {rec.samples} servo samples to {args.out}")
-            if args.cloud and n_cloud is None:
-                cloud = cap.assemble(s.model, **kw)
-                write_cloud(args.cloud, cloud)
-                n_cloud = len(cloud)
-            if args.cloud and not args.json:
-                print(f"{n_cloud} points -> {args.cloud}")
+                if args.cloud:
+                    print(f"{n_cloud} points -> {args.cloud}")
     except BagWriteError as exc:
         # the disk (or the database) refused: the system's words, exit 1 like any OSError
         print(f"nodlidar record: {exc}", file=sys.stderr)

@@ -177,6 +177,7 @@ class BagRecorder:
         self._pending: list[tuple[int, Any]] = []
         self._recent: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._done_until_s = -math.inf  # last beam of the last scan given its PointCloud2
+        self._tmpl: dict[str, tuple] = {}
 
     # -- lifecycle ------------------------------------------------------------------------
     def open(self) -> BagRecorder:
@@ -373,34 +374,82 @@ class BagRecorder:
                 t_s, angle_rad = np.concatenate([t0, t_s]), np.concatenate([a0, angle_rad])
             self._recent[joint] = (t_s, angle_rad)
 
+    def _templates(self, joint: str):
+        """CdrTemplates of this joint's JointState and /tf messages (made once)."""
+        from . import ros
+
+        if joint in self._tmpl:
+            return self._tmpl[joint]
+        ts = self._ts
+        T = ts.types
+        empty = np.zeros(0)
+
+        def stamp(v, i=""):
+            return T["builtin_interfaces/msg/Time"](sec=v[f"sec{i}"], nanosec=v[f"nsec{i}"])
+
+        js = ros.CdrTemplate(ts, "sensor_msgs/msg/JointState", lambda v: T[
+            "sensor_msgs/msg/JointState"](
+                header=T["std_msgs/msg/Header"](stamp=stamp(v), frame_id=""), name=[joint],
+                position=np.array([v["pos"]]), velocity=empty, effort=empty),
+            {"sec": "<i4", "nsec": "<u4", "pos": "<f8"})
+        tf = None
+        if self.clouds:
+            if joint == "nod":
+                trs = [(ros.BASE_FRAME, ros.HEAD_FRAME, self._pivot)]
+            else:
+                trs = [(ros.LASER_FRAME, f, p) for f, _q, p in self._mirror_frames[joint]]
+            fields = {}
+            for i in range(len(trs)):
+                fields.update({f"sec{i}": "<i4", f"nsec{i}": "<u4", f"qx{i}": "<f8",
+                               f"qy{i}": "<f8", f"qz{i}": "<f8", f"qw{i}": "<f8"})
+
+            def build(v):
+                return ros.tf_message(ts, [
+                    (0, parent, child, (v[f"qx{i}"], v[f"qy{i}"], v[f"qz{i}"], v[f"qw{i}"]), p)
+                    for i, (parent, child, p) in enumerate(trs)])
+
+            def with_stamps(v):  # tf_message stamps from ns: set sec/nanosec afterwards
+                m = build(v)
+                for i, tr in enumerate(m.transforms):
+                    tr.header.stamp = stamp(v, i)
+                return m
+
+            tf = ros.CdrTemplate(ts, "tf2_msgs/msg/TFMessage", with_stamps, fields) if trs \
+                else None
+        self._tmpl[joint] = (js, tf)
+        return js, tf
+
     def _write_samples(self, joint: str, t_s: np.ndarray, angle_rad: np.ndarray) -> None:
         from . import ros
 
-        ts = self._ts
-        JointState = ts.types["sensor_msgs/msg/JointState"]
-        Header = ts.types["std_msgs/msg/Header"]
-        empty = np.zeros(0)
-        off = self.epoch_offset_ns
-        tf = self.clouds
-        if tf and joint != "nod":
-            ang = ros.mirror_joint_angle(angle_rad, self.lift[joint], self._hinge_z,
-                                         self._lift_angle)
-            frames = self._mirror_frames[joint]
-        for i, (t, a) in enumerate(zip(t_s, angle_rad)):
-            ns = _ns(t) + off
-            m = JointState(header=Header(stamp=ros.stamp(ts, ns), frame_id=""), name=[joint],
-                           position=np.array([a]), velocity=empty, effort=empty)
-            self._write(self._c_joint, ns, m, "sensor_msgs/msg/JointState")
-            if not tf:
-                continue
+        if not len(t_s):
+            return
+        js, tf = self._templates(joint)
+        ns = np.round(t_s * 1e9).astype(np.int64) + self.epoch_offset_ns
+        sec, nsec = ns // 1_000_000_000, ns % 1_000_000_000
+        rows = js.batch(sec=sec, nsec=nsec, pos=angle_rad)
+        rows_tf = None
+        if tf is not None:
             if joint == "nod":
-                trs = [(ns, ros.BASE_FRAME, ros.HEAD_FRAME, ros.quat_axis(1, a), self._pivot)]
+                # pitch about y: (0, sin(a/2), 0, cos(a/2))
+                h = angle_rad / 2
+                cols = {"sec0": sec, "nsec0": nsec, "qx0": np.zeros_like(h), "qy0": np.sin(h),
+                        "qz0": np.zeros_like(h), "qw0": np.cos(h)}
             else:
-                qa = ros.quat_axis(0, float(ang[i]))
-                trs = [(ns, ros.LASER_FRAME, f, ros.quat_mul(q, qa), p) for f, q, p in frames]
-                if not trs:
-                    continue
-            self._write(self._c_tf, ns, ros.tf_message(ts, trs), "tf2_msgs/msg/TFMessage")
+                ang = ros.mirror_joint_angle(angle_rad, self.lift[joint], self._hinge_z,
+                                             self._lift_angle)
+                qa = (np.sin(ang / 2), np.zeros_like(ang), np.zeros_like(ang), np.cos(ang / 2))
+                cols = {}
+                for i, (_f, q0, _p) in enumerate(self._mirror_frames[joint]):
+                    x, y, z, w = ros.quat_mul(q0, qa)  # rest pose, then the lift about x
+                    cols.update({f"sec{i}": sec, f"nsec{i}": nsec, f"qx{i}": x, f"qy{i}": y,
+                                 f"qz{i}": z, f"qw{i}": w})
+            rows_tf = tf.batch(**cols)
+        w = self._w
+        for i, t in enumerate(ns.tolist()):
+            w.write(self._c_joint, t, rows[i].tobytes())
+            if rows_tf is not None:
+                w.write(self._c_tf, t, rows_tf[i].tobytes())
 
     # -- per-scan clouds --------------------------------------------------------------------
     def _emit_clouds(self, final: bool) -> None:

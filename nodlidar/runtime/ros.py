@@ -36,7 +36,7 @@ __all__ = ["BASE_FRAME", "HEAD_FRAME", "LASER_FRAME", "mirror_frame", "POINTFIEL
            "pointcloud2", "pointcloud2_array", "stamp", "quaternion", "quat_axis", "quat_mul",
            "rot_y", "rot_x",
            "nod_transform", "mirror_joint_frames", "mirror_joint_angle", "static_transforms",
-           "tf_message", "urdf"]
+           "tf_message", "urdf", "CdrTemplate"]
 
 BASE_FRAME = "nodlidar_base"
 HEAD_FRAME = "nodlidar_head"
@@ -222,3 +222,59 @@ def urdf(design, patches=None, *, name: str | None = None) -> str:
               '\n      <material name="glass"/>\n    </visual>\n  </link>']
     x.append("</robot>")
     return '<?xml version="1.0"?>\n' + "\n".join(x) + "\n"
+
+
+# -- fast serialisation of many small messages -----------------------------------------------
+class CdrTemplate:
+    """Serialise many messages that differ only in a few fixed-size numbers (stamps,
+    angles) at numpy speed: one message is serialised by the typestore with sentinel
+    values, the sentinels' byte offsets are found, and each batch is the template tiled
+    with the numbers written at those offsets. Exact: the bytes equal the typestore's for
+    the same values (fixed-size fields do not move).
+
+    Parameters
+    ----------
+    ts : Typestore
+    msgtype : str
+    build : callable
+        ``build(values) -> message`` with ``values`` a dict name -> number.
+    fields : dict
+        name -> numpy dtype string (``"<i4"``, ``"<u4"``, ``"<f8"``) of each variable.
+    """
+
+    _SENTINELS = {"<i4": (0x3A5C7E11, 0x3A5C7E12), "<u4": (0xC3A5E1F1, 0xC3A5E1F2),
+                  "<f8": (1.2345678901234567e-250, 2.2345678901234567e-250)}
+
+    def __init__(self, ts, msgtype: str, build, fields: dict[str, str]):
+        self.fields = dict(fields)
+        # two serialisations with different sentinels: the offsets are where they differ
+        # and where the sentinel's bytes are (unique, checked)
+        per_kind: dict[str, int] = {}
+        vals = {}
+        for name, dt in fields.items():
+            k = per_kind.get(dt, 0)
+            per_kind[dt] = k + 1
+            base = self._SENTINELS[dt][0]
+            vals[name] = base + k if dt != "<f8" else base * (1 + k)
+        data = ts.serialize_cdr(build(vals), msgtype)
+        self.template = np.frombuffer(bytes(data), dtype=np.uint8).copy()
+        self.offsets = {}
+        raw = bytes(data)
+        for name, dt in fields.items():
+            pat = np.array([vals[name]], dtype=dt).tobytes()
+            at = raw.find(pat)
+            if at < 0 or raw.find(pat, at + 1) >= 0:
+                raise RuntimeError(f"CdrTemplate({msgtype}): field {name} not found once")
+            self.offsets[name] = at
+        self.msgtype = msgtype
+
+    def batch(self, **columns: np.ndarray) -> np.ndarray:
+        """(k, message size) uint8: row i is the message with ``columns[name][i]``."""
+        k = len(next(iter(columns.values())))
+        out = np.tile(self.template, (k, 1))
+        for name, dt in self.fields.items():
+            col = np.ascontiguousarray(np.asarray(columns[name]).astype(dt))
+            size = np.dtype(dt).itemsize
+            o = self.offsets[name]
+            out[:, o:o + size] = col.view(np.uint8).reshape(k, size)
+        return out
