@@ -155,23 +155,24 @@ def test_sdk_error_bits(sdk_port):
     assert err == dx.ErrorCode.DATA_LIMIT
 
 
-def test_sdk_torque_gates_motion(sdk_port, emu):
-    port, ph = sdk_port
+def test_sdk_torque_gates_motion(sdk_manual):
+    port, ph, clock, emu = sdk_manual
     ok(ph.write4ByteTxRx(port, 2, 116, 2500))  # stored, no torque: no motion
-    time.sleep(0.05)
+    clock.advance(0.5)
     assert ok(ph.read4ByteTxRx(port, 2, 132)) == 2048
     assert ok(ph.read1ByteTxRx(port, 2, 122)) == 0
     ok(ph.write1ByteTxRx(port, 2, 64, 1))  # torque on: holds present position
     assert ok(ph.read4ByteTxRx(port, 2, 116)) == 2048
     ok(ph.write4ByteTxRx(port, 2, 112, 0))  # 0 = velocity limit
     ok(ph.write4ByteTxRx(port, 2, 116, 2100))
-    time.sleep(0.05)
+    clock.advance(0.5)  # 52 ticks at the velocity limit (200 units, ~1300 ticks/s): 0.04 s
     assert ok(ph.read4ByteTxRx(port, 2, 132)) == 2100
     assert emu.joint_angle("mirror_left") == pytest.approx(dx.ticks_to_rad(2100))
 
 
-def test_sdk_group_sync_write_and_read(sdk_port, emu):
-    port, ph = sdk_port
+def test_sdk_group_sync_write_and_read(sdk_manual):
+    port, ph, clock, emu = sdk_manual
+    n = emu.packets_handled
     sw_t = sdk.GroupSyncWrite(port, ph, 64, 1)
     for i in (2, 3):
         assert sw_t.addParam(i, [1])
@@ -180,7 +181,8 @@ def test_sdk_group_sync_write_and_read(sdk_port, emu):
     assert sw.addParam(2, list((1500).to_bytes(4, "little")))
     assert sw.addParam(3, list((2600).to_bytes(4, "little")))
     assert sw.txPacket() == sdk.COMM_SUCCESS
-    time.sleep(0.3)
+    assert emu.wait_handled(n + 2)  # broadcasts have no reply to wait for
+    clock.advance(3.0)  # 548 ticks at the velocity limit: 0.4 s
     sr = sdk.GroupSyncRead(port, ph, 132, 4)
     for i in (1, 2, 3):
         assert sr.addParam(i)

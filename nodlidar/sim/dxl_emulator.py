@@ -504,6 +504,7 @@ class DxlEmulator:
         self._servos: dict[int, _Servo] = {s.id: _Servo(s, t) for s in specs}
         self._by_name = {s.name: s.id for s in specs if s.name}
         self._lock = threading.RLock()
+        self._handled = threading.Condition(self._lock)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._closers: list = []
@@ -584,10 +585,19 @@ class DxlEmulator:
     # -- protocol -----------------------------------------------------------------
     def handle_packet(self, pkt: InstructionPacket) -> list[StatusPacket]:
         """Execute one instruction; return the status packets the bus would send."""
-        with self._lock:
+        with self._handled:
             self.packets_handled += 1
             t = self.clock.now()
-            return self._dispatch(pkt, t)
+            out = self._dispatch(pkt, t)
+            self._handled.notify_all()
+            return out
+
+    def wait_handled(self, n: int, timeout_s: float = 10.0) -> bool:
+        """Block until ``n`` packets have been handled in all (wall ``timeout_s``); for
+        tests that send an instruction without a reply (broadcast) and must know it has
+        taken effect before they move a manual clock."""
+        with self._handled:
+            return self._handled.wait_for(lambda: self.packets_handled >= n, timeout_s)
 
     def _reply(self, s: _Servo, error: int, params: bytes = b"", *, is_read: bool = False):
         level = s.get("status_return_level")
