@@ -124,6 +124,9 @@ def test_round_trip_with_rosbags_reader(tmp_path, storage):
     assert_allclose(back.joints["nod"][0], t, atol=1e-9, rtol=0)
     assert_array_equal(back.joints["nod"][1], 0.1 * np.sin(t))  # float64 positions exact
     assert set(back.joints) == {"nod", "mirror_left"}
+    # the storage file given instead of the folder reads the same bag
+    f = next((tmp_path / "b").glob("*.mcap" if storage == "mcap" else "*.db3"))
+    assert [s.raw for s in read_bag(f).scans] == [s.raw for s in back.scans]
 
 
 def test_existing_directory_refused(tmp_path):

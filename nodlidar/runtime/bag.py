@@ -761,6 +761,8 @@ def read_bag(path: str | Path, dmin_mm: int | None = None) -> BagContents:
         Missing or unreadable bag, malformed metadata or design message (one line).
     """
     p = Path(path)
+    if p.is_file() and p.suffix in (".mcap", ".db3"):
+        p = p.parent  # the storage file was given: read its bag folder
     if needs_recovery(p):
         with tempfile.TemporaryDirectory(prefix="nodlidar-recover-") as tmp:
             copy = Path(tmp) / "bag"
