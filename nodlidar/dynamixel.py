@@ -450,6 +450,13 @@ class PacketParser:
                 self._skip(1)  # not a real header; resync after it
                 continue
             total = 7 + length
+            # A header cannot occur inside a real frame before its CRC (the body is
+            # stuffed, an ID is <= 254, a length <= MAX_LENGTH): a candidate with one is
+            # garbage, skipped without a CRC - resync stays linear in the bytes fed.
+            inner = buf.find(HEADER, 1, min(len(buf), total - 2))
+            if inner > 0:
+                self._skip(inner)
+                continue
             if len(buf) < total:
                 return None
             frame = bytes(buf[:total])

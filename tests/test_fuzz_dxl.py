@@ -142,3 +142,37 @@ def test_emulator_answers_anything_without_raising(emulator, packets, noise):
     rp.feed(reply)
     for pkt in rp.packets(skip_bad=True):
         assert isinstance(pkt, dx.StatusPacket)
+
+
+@pytest.mark.parametrize("pattern", [
+    dx.HEADER + b"\x01\xff\x03",  # headers claiming 1023-byte frames, 7 bytes apart
+    dx.HEADER + b"\x01\xff\x03\x55" + bytes(20),
+    dx.HEADER + b"\x01\x10\x00",
+])
+def test_parser_resync_is_linear(monkeypatch, pattern):
+    """64 KiB of overlapping fake headers (a hostile client) cost each byte a bounded
+    number of CRC steps - before, every candidate was CRC'd over its claimed 1 KiB
+    (10 s here) - and a real frame after them is still found."""
+    crc_bytes = [0]
+    real = dx.crc16
+
+    def counting(data, crc=0):
+        crc_bytes[0] += len(data)
+        return real(data, crc)
+
+    junk = pattern * (65536 // len(pattern))
+    good = dx.ping_packet(7).encode()
+    monkeypatch.setattr(dx, "crc16", counting)
+    parser = dx.PacketParser()
+    parser.feed(junk + good)
+    got = []
+    while True:
+        try:
+            pkt = parser.next_packet()
+        except ProtocolError:
+            continue
+        if pkt is None:
+            break
+        got.append(pkt)
+    assert crc_bytes[0] <= 3 * len(junk)
+    assert got == [dx.ping_packet(7)]
