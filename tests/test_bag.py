@@ -451,3 +451,39 @@ def test_record_force_and_json(tmp_path, capsys):
     (tmp_path / "c.ply").write_bytes(b"")
     assert main(["replay", str(out), "--out", str(tmp_path / "c.ply")]) == 2
     assert main(["replay", str(out), "--out", str(tmp_path / "c.ply"), "--force"]) == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("storage", STORAGES)
+def test_mutated_bags_never_raise_anything_but_a_nodlidar_error(tmp_path, storage):
+    """Random damage (byte flips in the storage file, cuts and garbage in
+    metadata.yaml): read_bag either reads the bag (counting what it skipped) or raises a
+    one-line DesignFileError - never another exception."""
+    write_bag(tmp_path / "b", n_scans=4, storage=storage)
+    src = tmp_path / "b"
+    store = next(src.glob("*.mcap" if storage == "mcap" else "*.db3"))
+    data, meta = store.read_bytes(), (src / "metadata.yaml").read_bytes()
+    rng = np.random.default_rng(11)
+    outcomes = {"read": 0, "error": 0}
+    for i in range(24):
+        d = tmp_path / f"m{i}"
+        d.mkdir()
+        body, m = bytearray(data), bytearray(meta)
+        if i % 3 == 2:  # metadata.yaml cut or with a garbage byte
+            j = int(rng.integers(0, len(m)))
+            m = m[:j] if i % 2 else m[:j] + bytes([int(rng.integers(0, 256))]) + m[j + 1:]
+        else:  # a few bytes of the storage file flipped
+            for j in rng.integers(0, len(body), 1 + i % 4):
+                body[int(j)] ^= int(rng.integers(1, 256))
+        (d / store.name).write_bytes(bytes(body))
+        (d / "metadata.yaml").write_bytes(bytes(m))
+        try:
+            back = read_bag(d)
+        except DesignFileError as exc:
+            assert "\n" not in str(exc)
+            outcomes["error"] += 1
+        else:
+            assert len(back.scans) + back.skipped.get(RAW_TOPIC, 0) <= 4
+            outcomes["read"] += 1
+    assert sum(outcomes.values()) == 24
+    assert outcomes["read"] >= 8  # (seeded) damaged bags are read, not just refused
