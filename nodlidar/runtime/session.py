@@ -216,12 +216,14 @@ class Session:
         """Nod, sample the servos and stream scans until ``stop(scans, nod)`` is true.
 
         ``lift`` lifts both mirrors first (else they are deployed). ``on_scan(scan,
-        samplers)`` runs for every scan (recording). Returns every scan and every sample
-        still buffered (samplers keep every sample unless ``on_scan`` prunes them).
+        samplers)`` runs for every scan (recording). Returns every scan and the samples
+        still buffered (``keep=True``: the newest 65 536 of each servo).
 
         ``keep=False`` (long captures whose ``on_scan`` consumes the scans): the scans are
         not kept; ``stop`` gets a window with ``len()``, the first and the last scan, and
-        the returned capture has no scans - memory stays flat however long it runs.
+        the returned capture has no scans; the samplers keep every sample until
+        ``on_scan`` prunes them (``samplers[k].prune(t)``, see :class:`LiveAssembler`) -
+        memory stays flat however long it runs, and no sample is lost.
 
         Raises
         ------
@@ -232,9 +234,17 @@ class Session:
         bus = self.bus
         lifter = MirrorLift(bus, self.lift_left, self.lift_right)
         lifter.lift() if lift else lifter.reset()
-        samplers = {"nod": PositionSampler(bus, NOD_ID, period_s=nod_period_s),
-                    "mirror_left": PositionSampler(bus, MIRROR_LEFT_ID, period_s=mirror_period_s),
-                    "mirror_right": PositionSampler(bus, MIRROR_RIGHT_ID, period_s=mirror_period_s)}
+        # keep=False (a consumer that prunes, as record_capture): every sample until
+        # pruned, nothing lost. keep=True: the capture returns every scan with the
+        # samples; a consumer that snapshots the samplers on every scan without pruning
+        # (track live) must not copy an ever-growing buffer, so those keep the newest
+        # 65 536 samples (> 2 min of nod samples at the 2 ms poll) as before.
+        cap_n = None if not keep else 65536
+        samplers = {"nod": PositionSampler(bus, NOD_ID, period_s=nod_period_s, capacity=cap_n),
+                    "mirror_left": PositionSampler(bus, MIRROR_LEFT_ID, period_s=mirror_period_s,
+                                                   capacity=cap_n),
+                    "mirror_right": PositionSampler(bus, MIRROR_RIGHT_ID,
+                                                    period_s=mirror_period_s, capacity=cap_n)}
         for s in samplers.values():
             s.start()
         # a wall-clock hiccup of the simulated sensor's host lasts sim_rate times longer
