@@ -209,3 +209,14 @@ def test_long_record_cloud_equals_replay_and_memory_is_flat(tmp_path):
     assert half.sum() >= 8
     slope_mb_s = np.polyfit(w[half], m[half], 1)[0]
     assert slope_mb_s < 0.5, f"RSS grows {slope_mb_s:.2f} MB/s"
+
+
+@pytest.mark.parametrize("rate", [float("inf"), float("nan"), 0.0, -1.0])
+def test_non_finite_rates_refused(rate):
+    from nodlidar.errors import ParameterError
+    from nodlidar.sim.clock import SimClock
+
+    with pytest.raises(ParameterError, match="clock.rate"):
+        SimClock(rate)
+    with pytest.raises(ParameterError, match="--sim-rate"):
+        Session(sim_rate=rate)

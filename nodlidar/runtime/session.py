@@ -110,7 +110,8 @@ class Session:
         if (port is None) != (servo_port is None):
             raise ParameterError("--port/--servo-port", (port, servo_port),
                                  "both (hardware) or neither (the simulated sensor)")
-        require(sim_rate > 0, "--sim-rate", sim_rate, "> 0")
+        require(math.isfinite(sim_rate) and sim_rate > 0, "--sim-rate", sim_rate,
+                "a finite number > 0")
         self.design_path = Path(design) if design is not None else DEFAULT_DESIGN
         self.port, self.servo_port = port, servo_port
         self.calibration_path = Path(calibration) if calibration is not None else None

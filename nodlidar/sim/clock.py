@@ -7,6 +7,7 @@ test advances it.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 
@@ -20,7 +21,8 @@ class SimClock:
     """
 
     def __init__(self, rate: float = 1.0, t0: float = 0.0):
-        require(rate > 0, "clock.rate", rate, "> 0")
+        require(isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0,
+                "clock.rate", rate, "a finite number > 0 (simulated seconds per wall second)")
         self.rate = float(rate)
         self._t0 = float(t0)
         self._wall0 = time.monotonic()
