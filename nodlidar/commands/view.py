@@ -15,6 +15,8 @@ server binds to 127.0.0.1 unless --host says otherwise.
 from __future__ import annotations
 
 import json
+import signal
+import threading
 
 from ._args import add_force_arg, bounded_float, bounded_int, check_output_path
 from ._output import status
@@ -58,7 +60,9 @@ def run(args) -> int:
     if args.mcap is not None:
         check_output_path(args.mcap, force=args.force, option="--mcap")
     sink = FoxgloveSink(host=args.host, port=args.ws_port, mcap=args.mcap, overwrite=args.force)
+    stop = threading.Event()
     url = sink.start()
+    restore = _stop_on_signals(stop)
     try:
         if args.json:
             print(json.dumps({"url": url, "mcap": args.mcap}), flush=True)
@@ -68,8 +72,9 @@ def run(args) -> int:
         with session_from_args(args) as s:
             st = run_view(s, sink, duration_s=args.duration, max_points=args.max_points,
                           track=not args.no_tracks, sensor_height_m=args.sensor_height,
-                          lift=args.lift, log=status)
+                          lift=args.lift, log=status, stop=stop)
     finally:
+        restore()
         sink.close()
     summary = {"url": url, "scans": st.scans, "points": st.points, "cloud_points": st.cloud_points,
                "messages": st.messages, "tracks": st.tracks, "tracking": st.tracking,
@@ -82,3 +87,27 @@ def run(args) -> int:
               + ", ".join(f"{k} {v}" for k, v in st.messages.items())
               + (f"; wrote {args.mcap}" if args.mcap else ""))
     return 0
+
+
+def _stop_on_signals(stop: threading.Event):
+    """Ctrl-C / SIGTERM end the view cleanly at the next scan (the MCAP file is closed, the
+    summary printed); a second Ctrl-C interrupts at once. Installed whatever the inherited
+    disposition (a background job starts with SIGINT ignored). Returns the restorer."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def handler(signum, _frame) -> None:
+        if stop.is_set() and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        status("stopping at the next scan (Ctrl-C again to interrupt now)")
+        stop.set()
+
+    for sig in old:
+        signal.signal(sig, handler)
+
+    def restore() -> None:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+
+    return restore
