@@ -487,3 +487,22 @@ def test_mutated_bags_never_raise_anything_but_a_nodlidar_error(tmp_path, storag
             outcomes["read"] += 1
     assert sum(outcomes.values()) == 24
     assert outcomes["read"] >= 8  # (seeded) damaged bags are read, not just refused
+
+
+@pytest.mark.parametrize("storage", STORAGES)
+def test_interrupted_recording_is_closed(tmp_path, storage):
+    """Ctrl-C (KeyboardInterrupt) inside the recorder still finishes the bag: it opens
+    without repair, with every scan written and its PointCloud2."""
+    rng = np.random.default_rng(4)
+    t = 12.0 + np.arange(0, 0.5, 0.004)
+    with pytest.raises(KeyboardInterrupt):
+        with recorder(tmp_path / "b", storage) as rec:
+            for k in range(3):
+                rec.write_scan(fake_scan(k, rng), URG)
+                rec.write_samples("nod", t[(t >= 12 + 0.1 * k) & (t < 12.1 + 0.1 * k)],
+                                  np.zeros(25))
+                rec.commit()
+            raise KeyboardInterrupt
+    assert (tmp_path / "b" / "metadata.yaml").exists()
+    back = read_bag(tmp_path / "b")
+    assert not back.recovered and len(back.scans) == 3 and back.clouds == 3

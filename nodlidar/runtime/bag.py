@@ -300,10 +300,14 @@ class BagRecorder:
         return self.open()
 
     def __exit__(self, exc_type, *exc) -> None:
-        if exc_type is None:
+        # finish the bag on any way out (Ctrl-C is how a long recording is stopped); after
+        # a write error (_failed aborted it) there is nothing left to finish
+        try:
             self.close()
-        else:
-            self.abort()
+        except BagWriteError:
+            if exc_type is None:
+                raise
+            # the original exception says what happened; the committed scans are kept
 
     def _failed(self, exc: BaseException) -> BagWriteError:
         self.abort()
