@@ -396,3 +396,60 @@ def test_static_cloud_plot():
     fig = plot_cloud_3d(xyz, mirror=mirror, max_points=100)
     assert 50 <= sum(len(c.get_offsets()) for c in fig.axes[0].collections) <= 100
     plt.close(fig)
+
+
+@pytest.mark.slow
+def test_view_mirrors_calibrated_and_tracks_in_the_mcap(tmp_path):
+    """With --calibration the mirror entities are the calibrated patches (not the design's);
+    on the paper's tracking scene the tracker's tracks are published (frame world), one id
+    per track the summary counts. Read back from the --mcap file with the mcap package."""
+    from mcap.reader import make_reader
+
+    from nodlidar.calibration.calfile import Calibration, write_calibration
+    from nodlidar.calibration.fit import design_hash
+    from nodlidar.paper import PAPER_DESIGN, TABLE_I_PERTURBATIONS
+    from nodlidar.solver import solve
+    from nodlidar.spec import load_design
+
+    design = solve(load_design(PAPER_DESIGN))
+    cal = Calibration(id="cal-view", design_name=design.spec.name, design_hash=design_hash(design.spec),
+                      created="2026-12-01T00:00:00+00:00", model="exact",
+                      perturbations=dict(TABLE_I_PERTURBATIONS))
+    write_calibration(tmp_path / "cal.toml", cal)
+    mcap_path = tmp_path / "v.mcap"
+    r = subprocess.run([sys.executable, "-m", "nodlidar.cli", "-q", "view", "--ws-port", "0",
+                        "--scene", "paper-tracking", "--perturb", "table1", "--calibration",
+                        str(tmp_path / "cal.toml"), "--sim-rate", "5", "--duration", "12",
+                        "--mcap", str(mcap_path), "--json"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    first, summary = (json.loads(line) for line in r.stdout.splitlines())
+    assert first["url"].startswith("ws://127.0.0.1:") and summary["scans"] > 0
+
+    schemas = Schemas()
+    mirrors, track_ids, track_frames = {}, set(), set()
+    with open(mcap_path, "rb") as f:
+        reader = make_reader(f)
+        for schema, channel, msg in reader.iter_messages(topics=["/nodlidar/mirrors", "/nodlidar/tracks"]):
+            if schema.name not in {k.lstrip(".") for k in schemas.types}:
+                schemas.add_set(schema.data)
+            up = schemas.decode(schema.name, msg.data)
+            for e in up.get("entities", []):
+                if channel.topic == "/nodlidar/mirrors":
+                    mirrors[e["id"]] = e
+                else:
+                    track_ids.add(e["id"])
+                    track_frames.add(e["frame_id"])
+                    assert e["cubes"], e
+            track_ids.update(d["id"] for d in up.get("deletions", []))
+    calibrated = design.patches(dict(TABLE_I_PERTURBATIONS))
+    nominal = design.patches(None)
+    for m, n in zip(calibrated, nominal, strict=True):
+        tri = mirrors[f"mirror/{m.name}"]["triangles"][0]
+        corners = np.array([[p.get("x", 0.0), p.get("y", 0.0), p.get("z", 0.0)] for p in tri["points"]])
+        assert_allclose(corners, m.corners(), atol=1e-12)
+        assert np.abs(corners - n.corners()).max() > 1e-3   # Table I moves every mirror by mm
+    if summary["tracking"] != "on":
+        pytest.fail(f"the tracker could not be built: {summary['tracking']}")
+    assert track_ids and track_frames == {"world"}
+    assert len(track_ids) == summary["tracks"]
