@@ -1,8 +1,16 @@
-"""UrgDriver against the SCIP 2.0 emulator over TCP and a pty, with and without faults."""
+"""UrgDriver against the SCIP 2.0 emulator over TCP and a pty, with and without faults.
+
+Tests that check a stream's timing (consecutive timestamps, no drops, the 24-bit wrap) run
+on a :class:`ManualClock` moved by a :class:`Pacer`, so a loaded machine cannot make the
+emulator skip scans; the fault tests run on a fast real-time clock and check correctness
+(ground truth, exact drop counts) and generous recovery bounds only.
+"""
 
 from __future__ import annotations
 
 import gc
+import socket
+import threading
 import time
 
 import numpy as np
@@ -11,12 +19,12 @@ import pytest
 import serial
 
 from nodlidar import scip
-from nodlidar.errors import DeviceError, ParameterError
+from nodlidar.errors import DeviceError, NodlidarError, ParameterError, ProtocolError
 from nodlidar.lidar import lidar_model
 from nodlidar.runtime.urg import UrgDriver
-from nodlidar.sim.clock import SimClock
+from nodlidar.sim.clock import ManualClock, SimClock
 from nodlidar.sim.faults import FaultConfig
-from nodlidar.sim.scip_emulator import ScipEmulator
+from nodlidar.sim.scip_emulator import ScipEmulator, flat_wall_source
 
 URG = lidar_model("URG-04LX")
 RATE = 20.0  # simulated seconds per wall second
@@ -34,6 +42,40 @@ def assert_ground_truth(emu: ScipEmulator, scan) -> None:
     k = emu.scan_index(scan.timestamp_ms)
     expected = emu.expected_ranges_mm(k, scan.request)
     assert np.array_equal(scan.ranges_mm, expected), f"scan {scan.seq} (k={k}) is corrupt"
+
+
+class Pacer:
+    """Moves a :class:`ManualClock` to each next scan the emulator has due, at most
+    ``lead`` scans ahead of what the driver has delivered or counted as dropped (waiting
+    on the emulator's and the driver's counters, never on wall time). The emulator is
+    then never behind its clock, so it never skips scans, and the driver never waits long
+    for one."""
+
+    def __init__(self, emu: ScipEmulator, clock: ManualClock, drv: UrgDriver, lead: int = 3):
+        self.emu, self.clock, self.drv, self.lead = emu, clock, drv, lead
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="pacer", daemon=True)
+
+    def __enter__(self) -> Pacer:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+
+    def _run(self) -> None:
+        emu, drv = self.emu, self.drv
+        while not self._stop.is_set():
+            due = emu.device.next_due()
+            # scans sent that the driver has neither delivered nor counted as dropped
+            ahead = emu.stats.scans_sent - drv.stats.scans - drv.stats.dropped_scans
+            if due is None or ahead >= self.lead:
+                self._stop.wait(0.001)  # polling two counters; nothing is due yet
+                continue
+            sent = emu.stats.scans_sent
+            self.clock.advance(max(0.0, due - self.clock.now()))
+            emu.wait_for(lambda st, sent=sent: st.scans_sent > sent or self._stop.is_set(), 5.0)
 
 
 @pytest.fixture(params=["tcp", "pty"])
@@ -79,8 +121,9 @@ def test_single_scan_equals_source(emulator):
 
 
 def test_stream_n_scans(emulator):
-    emu, port = emulator()
-    with UrgDriver(port, timeout=0.5) as drv:
+    clock = ManualClock()
+    emu, port = emulator(clock=clock)
+    with UrgDriver(port, timeout=2.0) as drv, Pacer(emu, clock, drv):
         scans = list(drv.stream(count=150))
         assert len(scans) == 150
         assert [s.index for s in scans] == list(range(150))
@@ -94,8 +137,9 @@ def test_stream_n_scans(emulator):
 
 
 def test_stream_finite_interval_cluster():
-    with ScipEmulator(URG, SimClock(rate=RATE), random_source) as emu, \
-            UrgDriver(emu.serve_tcp(), timeout=0.5) as drv:
+    clock = ManualClock()
+    with ScipEmulator(URG, clock, random_source) as emu, \
+            UrgDriver(emu.serve_tcp(), timeout=2.0) as drv, Pacer(emu, clock, drv):
         scans = list(drv.stream(100, 200, cluster=4, interval=1, count=5, command="MS"))
         assert [s.remaining for s in scans] == [4, 3, 2, 1, 0]
         assert [s.index for s in scans] == [0, 2, 4, 6, 8]
@@ -125,7 +169,8 @@ def test_handshake_from_running_stream_and_tm_mode(tmp_path):
             raw.write(b"MD0044072501000\n")
             assert raw.read_until(b"\n\n") == b"MD0044072501000\n00P\n\n"
             assert raw.read(3000)
-        time.sleep(0.1)  # scans pile up in the tty
+        n0 = emu.stats.scans_sent
+        assert emu.wait_for(lambda st: st.scans_sent >= n0 + 3)  # scans pile up in the tty
         with UrgDriver(port, timeout=0.5) as drv:
             assert drv.stats.stale_messages > 0
             assert drv.parameters().amax == 725
@@ -146,22 +191,23 @@ def test_sync_clock_and_stamps():
     with ScipEmulator(URG, clock, random_source) as emu, \
             UrgDriver(emu.serve_tcp(), timeout=0.5) as drv:
         sync = drv.sync_clock(samples=8)
-        # device time = clock time = monotonic - wall0, so offset = wall0
-        assert abs(sync.offset_s - clock._wall0) < 3e-3
-        assert sync.rtt_s < 0.05
+        # device time = clock time = monotonic - wall0, so offset = wall0, within
+        # ClockSync's bound: half the best round trip + the 1 ms timer resolution (a fixed
+        # 3 ms failed when a loaded machine stretched every round trip)
+        bound = sync.rtt_s / 2 + 1e-3
+        assert abs(sync.offset_s - clock._wall0) <= bound
         for s in drv.stream(count=3):
             k = emu.scan_index(s.timestamp_ms)
             true_start = clock._wall0 + k * URG.scan_period_s
-            assert abs(s.stamp_s - true_start) < 3e-3
+            assert abs(s.stamp_s - true_start) <= bound
             assert s.host_time_s > s.stamp_s
 
 
 def test_timestamp_unwraps_beyond_24_bits():
-    clock = SimClock(rate=5.0)
+    clock = ManualClock()
     with ScipEmulator(URG, clock, random_source) as emu, \
-            UrgDriver(emu.serve_tcp(), timeout=0.5) as drv:
-        # set the device timer 3 s (simulated) short of the 24-bit wrap only once the
-        # handshake is done, so that however long it took, the 6 s stream crosses the wrap
+            UrgDriver(emu.serve_tcp(), timeout=2.0) as drv, Pacer(emu, clock, drv):
+        # the device timer 3 s short of the 24-bit wrap: the 6 s stream crosses it
         emu.device.reset_timer(clock.now() - ((1 << 24) - 3000) / 1000.0)
         scans = list(drv.stream(count=60))
         ts = np.array([s.timestamp_ms for s in scans])
@@ -212,6 +258,128 @@ def test_no_device():
     assert not drv.is_open
     with pytest.raises((serial.SerialException, OSError)):
         drv.open()
+
+
+@pytest.mark.parametrize("talk", [b"", b"\x00\xf3garbage at the wrong baud rate\n\n" * 3])
+def test_port_that_never_answers(talk):
+    """The most common mistake - the wrong port or baud rate: something is there but no
+    SCIP comes back. open() raises one public line (it leaked the private _LinkLost)."""
+    ls = socket.socket()
+    ls.bind(("127.0.0.1", 0))
+    ls.listen(1)
+    url = f"socket://127.0.0.1:{ls.getsockname()[1]}"
+
+    def serve():
+        conn, _ = ls.accept()
+        conn.recv(100)
+        conn.sendall(talk)
+        while conn.recv(100):  # hold the line open until the driver gives up
+            pass
+        conn.close()
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    drv = UrgDriver(url, timeout=0.3)
+    with pytest.raises(DeviceError) as ei:
+        drv.open()
+    msg = str(ei.value)
+    assert "\n" not in msg and msg.endswith(": check the port and baud rate")
+    assert msg.startswith(f"no SCIP reply from {url} within 0.3 s") if not talk else \
+        msg.startswith(f"no valid SCIP reply from {url} within 0.3 s (")
+    assert not drv.is_open
+    t.join(5)
+    ls.close()
+
+
+class _PP:
+    """The PP parameters a faulty device reports (``overrides`` by PP key)."""
+
+    def __init__(self, good: scip.SensorParams, **overrides: str):
+        self.good, self.overrides = good, overrides
+
+    def __getattr__(self, name):
+        return getattr(self.good, name)
+
+    def items(self):
+        return [(k, self.overrides.get(k, v)) for k, v in self.good.items()]
+
+
+@pytest.mark.parametrize(("key", "value"), [("SCAN", "0"), ("DMIN", "6000"), ("ARES", "0"),
+                                            ("AFRT", "1000")])
+def test_impossible_pp_reply_refused_on_open(key, value):
+    """SCAN 0 gave ZeroDivisionError, DMIN 6000 all-NaN scans: open() asks PP three times
+    and then raises a ProtocolError naming the field."""
+    with ScipEmulator(URG, ManualClock()) as emu:
+        emu.device.params = _PP(emu.device.params, **{key: value})
+        drv = UrgDriver(emu.serve_tcp(), timeout=0.5)
+        with pytest.raises(ProtocolError, match=rf"scip\.PP\.{key} = {value} is invalid"):
+            drv.open()
+        assert not drv.is_open and drv.stats.bad_info_replies == 2  # asked 3 times
+        assert emu.wait_for(lambda st: st.commands_answered >= 4)  # QT + 3 x PP
+    assert issubclass(ProtocolError, NodlidarError)
+
+
+def test_lost_md_acknowledgement_is_not_fatal():
+    """The stream's acknowledgement lost (message 2: after the handshake's QT and PP): the
+    first scan message stands for it - no 'status 99; allowed 00' error, no reconnect,
+    every scan delivered."""
+    clock = ManualClock()
+    for count in (5, 150):  # a finite request (echo counts down) and an endless one
+        with ScipEmulator(URG, clock, random_source,
+                          faults=FaultConfig(garble_at=(2,))) as emu, \
+                UrgDriver(emu.serve_tcp(), timeout=2.0) as drv, Pacer(emu, clock, drv):
+            scans = list(drv.stream(count=count))
+            assert len(scans) == count and [s.index for s in scans] == list(range(count))
+            for s in scans:
+                assert_ground_truth(emu, s)
+            assert drv.stats.lost_acks == 1 and drv.stats.reconnects == 0
+            assert emu.stats.bytes_corrupted == 1
+
+
+def test_statuses_inside_a_stream_are_resynced():
+    """Inside a stream a scan message with status '9y' (the sum of '99': a corruption the
+    checksum cannot see), a documented error status ('55' hardware, '0M' unstable) or
+    '98' is dropped like a bad checksum and counted; the stream goes on (it died with
+    ScipStatusError)."""
+    clock = ManualClock()
+    cfg = FaultConfig(status_at=((5, "9y"), (8, "55"), (11, "98"), (14, "0M")))
+    with ScipEmulator(URG, clock, random_source, faults=cfg) as emu, \
+            UrgDriver(emu.serve_tcp(), timeout=2.0) as drv, Pacer(emu, clock, drv):
+        scans = list(drv.stream(count=100))  # > 99: an endless MD the driver stops
+        for s in scans:
+            assert_ground_truth(emu, s)
+        st = drv.stats
+        assert st.bad_statuses == 3 and st.rejected_messages == 1  # '9y': not a status
+        assert st.dropped_scans == 4 and st.reconnects == 0
+        assert len(scans) == 100 and scans[-1].index == 103
+
+
+def test_plausibility_filter_in_the_driver():
+    """A one-step spike (a thin pole) seen in one scan only is flagged (NaN in ranges_m,
+    counted); the same spike in consecutive scans is confirmed from the second on."""
+    base = flat_wall_source(URG, 1.0)
+
+    def source(k: int, t: float) -> np.ndarray:
+        r = base(k, t).copy()
+        if k in (2, 5, 6, 7):
+            r[384 - 44] = 1.5  # 500 mm behind the wall at the front step
+        return r
+
+    clock = ManualClock()
+    with ScipEmulator(URG, clock, source) as emu, \
+            UrgDriver(emu.serve_tcp(), timeout=2.0,
+                      plausibility=scip.RangePlausibility()) as drv, Pacer(emu, clock, drv):
+        scans = list(drv.stream(count=9))
+    ks = [emu.scan_index(s.timestamp_ms) for s in scans]
+    flagged = {k: np.flatnonzero(s.implausible).tolist() for k, s in zip(ks, scans,
+                                                                         strict=True)}
+    assert flagged == {0: [], 1: [], 2: [340], 3: [], 4: [], 5: [340], 6: [], 7: [], 8: []}
+    for s in scans:
+        assert np.array_equal(np.isnan(s.ranges_m), s.error_mask | s.implausible)
+        assert_ground_truth(emu, s)  # ranges_mm keeps what the device sent
+    assert drv.stats.implausible_values == 2
+    with pytest.raises(ParameterError, match="plausibility"):
+        UrgDriver("socket://127.0.0.1:1", plausibility=0.03)
 
 
 # --- faults ----------------------------------------------------------------------------

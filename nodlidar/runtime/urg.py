@@ -67,6 +67,9 @@ class Scan:
         Values below this are error codes.
     raw : bytes
         The verified SCIP message exactly as received (for recording).
+    implausible : numpy.ndarray, shape (n,), bool, or None
+        Values the driver's plausibility filter flagged (their ``ranges_m`` are NaN,
+        ``ranges_mm`` keeps what the device sent); None without a filter.
     """
 
     seq: int
@@ -80,6 +83,7 @@ class Scan:
     stamp_s: float
     dmin_mm: int = 20
     raw: bytes = field(default=b"", repr=False)
+    implausible: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def device_time_s(self) -> float:
@@ -122,6 +126,12 @@ class DriverStats:
     reconnects: int = 0
     handshakes: int = 0
     bad_info_replies: int = 0
+    #: stream messages with a status other than 99 (scan) or 00 (acknowledgement), dropped
+    bad_statuses: int = 0
+    #: MD/MS acknowledgements lost (the first scan message stood for them)
+    lost_acks: int = 0
+    #: range values flagged by the plausibility filter (set to NaN in ``ranges_m``)
+    implausible_values: int = 0
 
 
 @dataclass(frozen=True)
@@ -209,11 +219,18 @@ class UrgDriver:
     reconnect_timeout_s : float
         Give up (raise :class:`~nodlidar.errors.DeviceError`) if the device does not come
         back within this many seconds.
+    plausibility : nodlidar.scip.RangePlausibility, optional
+        Flag ranges the 6-bit checksums let through but the sensor cannot have measured
+        (values > DMAX, isolated spikes the previous scan does not confirm): they become
+        NaN in ``Scan.ranges_m``, are marked in ``Scan.implausible`` and counted in
+        ``stats.implausible_values``. Off by default (about 3 in 10 000 clean values
+        flagged; see the class).
     """
 
     def __init__(self, port: str | serial.SerialBase, baudrate: int = 115200,
                  timeout: float = 1.0, *, reconnect: bool = True,
-                 reconnect_timeout_s: float = 30.0):
+                 reconnect_timeout_s: float = 30.0,
+                 plausibility: scip.RangePlausibility | None = None):
         if not isinstance(port, (str, serial.SerialBase)):
             raise ParameterError("urg.port", port, "a device path, pyserial URL or SerialBase")
         if not timeout > 0:
@@ -223,6 +240,11 @@ class UrgDriver:
         self.timeout = float(timeout)
         self.reconnect = bool(reconnect)
         self.reconnect_timeout_s = float(reconnect_timeout_s)
+        if plausibility is not None and not isinstance(plausibility, scip.RangePlausibility):
+            raise ParameterError("urg.plausibility", plausibility,
+                                 "None or a nodlidar.scip.RangePlausibility")
+        self.plausibility = plausibility
+        self._previous: tuple[tuple, int, np.ndarray] | None = None  # (request, ts, mm)
         self.stats = DriverStats()
         self.params: scip.SensorParams | None = None
         self.clock_sync: ClockSync | None = None
@@ -246,7 +268,16 @@ class UrgDriver:
         """Open the port, bring the device to SCIP 2.0 idle, read ``PP``; return self."""
         self._open_port()
         try:
-            self._handshake()
+            try:
+                self._handshake()
+            except _LinkLost:
+                # the most common mistake: the wrong port or baud rate - nothing answers
+                junk = self._framer.discarded_bytes
+                what = (f"no valid SCIP reply from {self._port_name()} within "
+                        f"{self.timeout:g} s ({junk} bytes received that are not SCIP 2.0)"
+                        if junk else
+                        f"no SCIP reply from {self._port_name()} within {self.timeout:g} s")
+                raise DeviceError(f"{what}: check the port and baud rate") from None
             self.params = self.parameters()
         except BaseException:
             self._close_port()
@@ -268,6 +299,9 @@ class UrgDriver:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    def _port_name(self) -> str:
+        return self.port if isinstance(self.port, str) else str(getattr(self.port, "port", "port"))
 
     def _open_port(self) -> None:
         if isinstance(self.port, str):
@@ -542,10 +576,25 @@ class UrgDriver:
         stamp = (self.clock_sync.host_time(ts) if self.clock_sync is not None
                  else t_rx - period_ms / 1000.0)
         rm = frame.ranges_mm
+        ranges_m = scip.ranges_mm_to_m(rm, p.dmin_mm)
+        flags = None
+        if self.plausibility is not None:
+            r = frame.request
+            key = (r.command, r.start, r.end, r.cluster)
+            prev = self._previous
+            # the previous scan of the same steps, if at most 1 s old
+            use = prev is not None and prev[0] == key and 0 < ts - prev[1] <= 1000
+            flags = self.plausibility.flag(
+                rm, dmin_mm=p.dmin_mm, dmax_mm=p.dmax_mm,
+                previous_mm=prev[2] if use else None,
+                period_s=(ts - prev[1]) / 1000.0 if use else period_ms / 1000.0)
+            ranges_m[flags] = np.nan
+            self.stats.implausible_values += int(flags.sum())
+            self._previous = (key, ts, rm)
         scan = Scan(seq=self._seq, index=index, request=frame.request, steps=frame.steps,
-                    ranges_m=scip.ranges_mm_to_m(rm, p.dmin_mm), ranges_mm=rm,
+                    ranges_m=ranges_m, ranges_mm=rm,
                     timestamp_ms=ts, host_time_s=t_rx, stamp_s=stamp, dmin_mm=p.dmin_mm,
-                    raw=raw)
+                    raw=raw, implausible=flags)
         self._seq += 1
         self.stats.scans += 1
         return scan
@@ -612,11 +661,41 @@ class UrgDriver:
         return self._stream(base, int(count), dev_count)
 
     def _start_stream(self, base: scip.DistanceRequest, n: int) -> scip.DistanceRequest:
+        """Send the MD/MS request and wait for its acknowledgement.
+
+        The acknowledgement can be lost (garbled) while the device starts streaming: a
+        scan message of this request then stands for it and is kept for the consumer.
+        An error status in the acknowledgement (e.g. ``50`` hardware trouble) raises
+        :class:`~nodlidar.scip.ScipStatusError`.
+        """
         self._tag_no += 1
         req = scip.DistanceRequest(base.command, base.start, base.end, base.cluster,
                                    base.interval, n, f"n{self._tag_no}")
-        scip.check_status(self._request(req.encode()), ("00",))
-        return req
+        echo = req.line()
+        self._write(req.encode())
+        deadline = time.monotonic() + self.timeout
+        while True:
+            got = self._next_message(deadline)
+            if got is None:
+                self.stats.timeouts += 1
+                raise _LinkLost(f"no reply to {echo!r} within {self.timeout} s")
+            reply = got[0]
+            if reply.echo == echo and reply.status != "99":
+                scip.check_status(reply, ("00",))
+                return req
+            if reply.status == "99" and self._same_stream(reply, req):
+                self.stats.lost_acks += 1
+                self._inbox.appendleft(got)  # the first scan: deliver it
+                return req
+            self.stats.stale_messages += 1
+
+    @staticmethod
+    def _same_stream(reply: scip.ScipReply, req: scip.DistanceRequest) -> bool:
+        """Is ``reply``'s echo one of ``req``'s scan echoes (any remaining count)?"""
+        e = reply.echo
+        body = req.line(0)
+        return (reply.code == req.command and len(e) == len(body)
+                and e[:13] == body[:13] and e[15:] == body[15:])
 
     def _stream(self, base: scip.DistanceRequest, total: int, dev_count: int) -> Iterator[Scan]:
         every = base.interval + 1
@@ -682,12 +761,15 @@ class UrgDriver:
         if reply.status == "00":  # a repeated acknowledgement
             self.stats.stale_messages += 1
             return None
+        if reply.status != "99":
+            # '98' (laser back to normal), a documented error status (21-97) or one the
+            # checksum let through ('9y'): dropped like a bad checksum. A device that
+            # really stopped sends nothing more: the timeout restarts the stream and the
+            # new acknowledgement then carries the error status, raised from there.
+            self.stats.bad_statuses += 1
+            return None
         try:
             fr = scip.decode_scan(reply)
-        except scip.ScipStatusError as e:
-            if e.status == "98":
-                return None
-            raise
         except ProtocolError:
             self.stats.bad_scans += 1
             return None

@@ -42,6 +42,11 @@ class FaultConfig:
         printable ASCII; its line's checksum catches it): the last content character of
         the first line after the status (before ``;<sum>`` on VV/PP/II lines, before the
         sum otherwise), or the status itself if the message has no such line.
+    status_at : tuple of (int, str)
+        ``(message number, status)``: that message is sent with this 2-character status
+        instead of its own, with a matching sum - a device error status inside a stream
+        (``"55"``), or a corruption the 6-bit sum cannot see (``"9y"`` has the sum of
+        ``"99"``).
     scans_only : bool
         Apply the faults only to scan messages (GD/GS/MD/MS data), not to replies.
     skip_messages : int
@@ -60,6 +65,7 @@ class FaultConfig:
     stall_at: tuple[int, ...] = ()
     disconnect_at: tuple[int, ...] = ()
     garble_at: tuple[int, ...] = ()
+    status_at: tuple[tuple[int, str], ...] = ()
     scans_only: bool = False
     skip_messages: int = 0
 
@@ -72,13 +78,17 @@ class FaultConfig:
             v = getattr(self, name)
             require(v >= 0.0, f"faults.{name}", v, ">= 0 s")
         require(self.skip_messages >= 0, "faults.skip_messages", self.skip_messages, ">= 0")
+        for item in self.status_at:
+            require(isinstance(item, tuple) and len(item) == 2 and isinstance(item[1], str)
+                    and len(item[1]) == 2 and item[1].isascii(), "faults.status_at", item,
+                    "(message number, 2 ASCII characters) pairs")
 
     @property
     def active(self) -> bool:
         """True if any fault can happen."""
         return any((self.drop_byte_prob, self.corrupt_byte_prob, self.delay_prob,
                     self.stall_prob, self.disconnect_prob, self.stall_at, self.disconnect_at,
-                    self.garble_at))
+                    self.garble_at, self.status_at))
 
 
 @dataclass(frozen=True)
@@ -137,6 +147,9 @@ class FaultInjector:
         if n in cfg.garble_at:
             data, hit = _garble_one(data)
             corrupted += hit
+        for at, status in cfg.status_at:
+            if at == n:
+                data = _restatus(data, status)
         if cfg.corrupt_byte_prob or cfg.drop_byte_prob:
             a = np.frombuffer(data, dtype=np.uint8).copy()
             if cfg.corrupt_byte_prob:
@@ -171,3 +184,14 @@ def _garble_one(message: bytes) -> tuple[bytes, int]:
         i = echo_end + 1  # the status
     a[i] ^= 0x01
     return bytes(a), 1
+
+
+def _restatus(message: bytes, status: str) -> bytes:
+    """``message`` with its status line replaced by ``status`` + its sum."""
+    echo_end = message.find(b"\n")
+    status_end = message.find(b"\n", echo_end + 1)
+    if echo_end < 0 or status_end < 0:
+        return message
+    s = status.encode("ascii")
+    line = s + bytes(((sum(s) & 0x3F) + 0x30,))
+    return message[:echo_end + 1] + line + message[status_end:]
