@@ -250,7 +250,7 @@ def test_bounded_int_refuses(text):
     p = _parser(type=bounded_int(1, 1_000_000))
     with pytest.raises(argparse.ArgumentError) as e:
         p.parse_args(["--x", text])
-    assert "--x" in str(e.value) and "1 .. 1e+06" in str(e.value)
+    assert "--x" in str(e.value) and "1 .. 1000000" in str(e.value)
 
 
 def test_bounded_int_accepts_exponent_notation():
@@ -310,3 +310,111 @@ def test_safe_name_never_escapes_the_folder(tmp_path_factory, name):
     target = root / ok
     assert os.path.normpath(target).startswith(str(root) + os.sep)
     assert Path(os.path.normpath(target)).parent == root
+
+
+# ---------------------------------------------------------------------------------------
+# tolerance: bounds, the Dask scheduler, Ctrl-C
+
+
+def test_tolerance_table_bounds():
+    from nodlidar.analysis.tolerance import MAX_SAMPLES, ToleranceSpec, tolerance_spec
+
+    with pytest.raises(ParameterError, match="tolerance.samples"):
+        ToleranceSpec(samples=MAX_SAMPLES + 1)
+    with pytest.raises(ParameterError, match="tolerance.dalpha_rad"):
+        tolerance_spec({"dalpha_rad": 1.0})
+    with pytest.raises(ParameterError, match="tolerance.lidar.offset_m"):
+        tolerance_spec({"lidar": {"offset_m": 1.0}})
+    with pytest.raises(ParameterError, match="tolerance.ranges_m"):
+        tolerance_spec({"ranges_m": [1e9]})
+    with pytest.raises(UnknownKeyError, match="did you mean tolerance.lidar.yaw_rad"):
+        tolerance_spec({"lidar": {"yaw_rd": 0.001}})
+
+
+def test_scheduler_refusals_are_quick_and_name_the_address():
+    import http.server
+    import time
+
+    from nodlidar.analysis.tolerance import _check_scheduler
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        http_addr = f"tcp://127.0.0.1:{srv.server_address[1]}"
+        for addr, needle in (("not a url", "port"), (http_addr, "no answer"), ("", "Dask"),
+                             ("foo://127.0.0.1:1", "scheme")):
+            t0 = time.monotonic()
+            with pytest.raises(ParameterError, match=needle) as e:
+                _check_scheduler(addr, timeout_s=2.0)
+            # the HTTP server waits for a request that never comes: refused at the timeout
+            assert time.monotonic() - t0 < 10.0
+            assert e.value.field == "scheduler" and e.value.value == addr
+    finally:
+        srv.shutdown()
+
+
+@pytest.mark.slow
+def test_scheduler_accepts_a_real_scheduler():
+    from distributed import LocalCluster
+
+    from nodlidar.analysis.tolerance import _check_scheduler
+
+    with LocalCluster(n_workers=0, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0") as cluster:
+        _check_scheduler(cluster.scheduler_address, timeout_s=10.0)  # no exception
+
+
+def _group_workers(pgid: int) -> int:
+    """Dask worker processes (multiprocessing spawn) in process group ``pgid``."""
+    n = 0
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            if os.getpgid(int(d.name)) != pgid:
+                continue
+            if b"spawn_main" in (d / "cmdline").read_bytes():
+                n += 1
+        except (OSError, ProcessLookupError):
+            continue
+    return n
+
+
+def _ignores_sigint(pid: int) -> bool:
+    """Whether process ``pid`` ignores SIGINT (bit 1 of SigIgn in /proc/PID/status)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigIgn:"):
+            return bool(int(line.split()[1], 16) & (1 << (2 - 1)))
+    return False
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to see the workers")
+def test_ctrl_c_with_dask_workers_is_one_line(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    exe = Path(sys.executable).with_name("nodlidar")
+    p = subprocess.Popen([str(exe), "tolerance", str(PAPER_DESIGN), "--samples", "400000",
+                          "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True, start_new_session=True, stdin=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        # Ctrl-C goes to the whole foreground group: wait until both workers exist and the
+        # cluster is up (the main process ignores SIGINT while it starts them)
+        while (_group_workers(p.pid) < 2 or _ignores_sigint(p.pid)) and p.poll() is None \
+                and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert p.poll() is None and _group_workers(p.pid) == 2, "workers did not start"
+        assert not _ignores_sigint(p.pid)
+        os.killpg(p.pid, signal.SIGINT)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+    lines = [ln for ln in err.replace("\r", "\n").splitlines() if ln.strip()]
+    assert p.returncode == 130
+    assert lines == ["nodlidar tolerance: interrupted"], err[-2000:]

@@ -49,8 +49,11 @@ any number of workers, or with no Dask at all.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import signal
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
@@ -110,10 +113,24 @@ LIDAR_COLUMNS = ("yaw", "pitch", "x", "y", "z", "roll")
 # the [tolerance] table
 
 
+#: Upper bounds of the [tolerance] table. A mounting error's spread beyond 0.2 rad (11 deg)
+#: or 50 mm is not a tolerance of this build: the traced beams then miss the mirrors and
+#: the tables fill with NaN. Samples and chunks are bounded by memory: a sample keeps
+#: 4 x mirrors x ranges float32 (~290 B for the paper's build, 0.6 GB at MAX_SAMPLES) and a
+#: chunk traces every beam of every mirror at once.
+MAX_SIGMA_RAD = 0.2
+MAX_SIGMA_M = 0.05
+MAX_SAMPLES = 2_000_000
+MAX_CHUNK_SIZE = 20_000
+MAX_RANGE_M = 100.0
+
+
 def _nonneg(table: dict, key: str, where: str, default: float) -> float:
     v = table.get(key, default)
-    require(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v >= 0,
-            f"{where}.{key}", v, "a finite number >= 0")
+    hi = MAX_SIGMA_M if key.endswith("_m") else MAX_SIGMA_RAD
+    unit = "m" if key.endswith("_m") else "rad"
+    require(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+            and 0 <= v <= hi, f"{where}.{key}", v, f"a finite number in 0 .. {hi:g} {unit}")
     return float(v)
 
 
@@ -185,15 +202,17 @@ class ToleranceSpec:
         require(self.distribution in DISTRIBUTIONS, "tolerance.distribution", self.distribution,
                 " or ".join(DISTRIBUTIONS))
         object.__setattr__(self, "ranges_m", tuple(float(x) for x in self.ranges_m))
-        require(len(self.ranges_m) >= 1 and all(math.isfinite(x) and x > 0 for x in self.ranges_m),
-                "tolerance.ranges_m", list(self.ranges_m), "one or more ranges > 0 m")
+        require(1 <= len(self.ranges_m) <= 64 and all(math.isfinite(x) and 0 < x <= MAX_RANGE_M
+                                                      for x in self.ranges_m),
+                "tolerance.ranges_m", list(self.ranges_m),
+                f"1 to 64 ranges in 0 (excluded) .. {MAX_RANGE_M:g} m")
         object.__setattr__(self, "percentiles", tuple(float(x) for x in self.percentiles))
-        require(len(self.percentiles) >= 1 and all(0 <= x <= 100 for x in self.percentiles),
-                "tolerance.percentiles", list(self.percentiles), "values in 0..100")
-        for key in ("samples", "chunk_size"):
+        require(1 <= len(self.percentiles) <= 64 and all(0 <= x <= 100 for x in self.percentiles),
+                "tolerance.percentiles", list(self.percentiles), "1 to 64 values in 0..100")
+        for key, hi in (("samples", MAX_SAMPLES), ("chunk_size", MAX_CHUNK_SIZE)):
             v = getattr(self, key)
-            require(isinstance(v, int) and not isinstance(v, bool) and v >= 1,
-                    f"tolerance.{key}", v, "an integer >= 1")
+            require(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= hi,
+                    f"tolerance.{key}", v, f"an integer in 1 .. {hi}")
         require(isinstance(self.seed, int) and not isinstance(self.seed, bool) and self.seed >= 0,
                 "tolerance.seed", self.seed, "an integer >= 0")
 
@@ -708,9 +727,85 @@ def _local_cluster(n_workers: int, processes: bool):
 
     env = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
            if k not in _UNSET_WORKER_ENV}
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": env}):
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": env}), _workers_ignore_sigint():
+        # loopback only: dashboard_address=None still served HTTP on *:8787 (and warned
+        # when another cluster had that port)
+        # (threads, processes=False, talk in-process: no host to bind)
+        net = {"host": "127.0.0.1", "worker_dashboard_address": "127.0.0.1:0"} if processes else {}
         return LocalCluster(n_workers=n_workers, processes=processes, threads_per_worker=1,
-                            dashboard_address=None, silence_logs=logging.ERROR)
+                            dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR, **net)
+
+
+@contextlib.contextmanager
+def _workers_ignore_sigint():
+    """Worker processes started inside this block ignore SIGINT.
+
+    Ctrl-C reaches the whole foreground process group: each worker then printed its own
+    ``KeyboardInterrupt`` traceback while this process was already shutting the cluster
+    down. An ignored signal stays ignored across fork/exec (Python installs its SIGINT
+    handler only where SIGINT is not ignored), so the workers leave the interrupt to us
+    and are stopped by ``cluster.close()``. A Ctrl-C during the few seconds of start-up
+    is ignored too. Only the main thread may change handlers; from other threads nothing
+    changes (and no Ctrl-C arrives there).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+#: How long to wait for a Dask scheduler to accept a connection and greet [s].
+SCHEDULER_TIMEOUT_S = 5.0
+
+
+def _check_scheduler(address: Any, timeout_s: float = SCHEDULER_TIMEOUT_S) -> None:
+    """Refuse, within about ``timeout_s``, a scheduler address that is malformed, not
+    reachable or not a Dask scheduler.
+
+    A Dask scheduler speaks first: right after a TCP connect it sends its handshake, a
+    frame with an 8-byte little-endian length. Anything else (an HTTP server waits for a
+    request and Dask's own connect would then wait forever) is refused.
+    """
+    import socket
+    import struct
+
+    allowed = "the address of a running Dask scheduler, e.g. tcp://host:8786"
+    if not isinstance(address, str) or not address.strip():
+        raise ParameterError("scheduler", address, allowed)
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, loc = parse_address(address, strict=False)
+        if scheme not in ("tcp", "tls", "inproc", "ucx", "ws", "wss"):
+            raise ValueError(f"unknown scheme {scheme!r}")
+        if scheme == "inproc":
+            return
+        host, port = parse_host_port(loc)
+    except (ValueError, TypeError) as exc:
+        raise ParameterError("scheduler", address, f"{allowed} ({exc})") from None
+    if scheme != "tcp":
+        return  # encrypted or other transports: leave the handshake to Dask (with its timeout)
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s) as sock:
+            sock.settimeout(timeout_s)
+            head = b""
+            while len(head) < 8:
+                chunk = sock.recv(8 - len(head))
+                if not chunk:
+                    break
+                head += chunk
+    except TimeoutError:
+        raise ParameterError("scheduler", address, f"{allowed} (no answer within "
+                                                   f"{timeout_s:g} s)") from None
+    except OSError as exc:
+        raise ParameterError("scheduler", address,
+                             f"{allowed} ({exc.strerror or exc})") from None
+    if len(head) < 8 or struct.unpack("<Q", head)[0] > (1 << 20):
+        raise ParameterError("scheduler", address, f"{allowed} (something else answers there)")
 
 
 def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
@@ -718,10 +813,17 @@ def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
     from distributed import Client, as_completed
 
     own_cluster = own_client = None
+    futures: dict = {}
+    interrupted = False
     try:
         if client is None:
             if scheduler is not None:
-                client = own_client = Client(scheduler)
+                _check_scheduler(scheduler)
+                try:
+                    client = own_client = Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
+                except (OSError, TimeoutError) as exc:  # CommClosedError is an OSError
+                    raise ParameterError("scheduler", scheduler,
+                                         f"a running Dask scheduler ({str(exc).splitlines()[0]})") from None
             else:
                 n = workers or min(os.cpu_count() or 1, 8)
                 own_cluster = _local_cluster(n, processes)
@@ -733,11 +835,34 @@ def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
             i = futures[fut]
             yield i, fut.result()
             fut.release()
+    except BaseException:  # Ctrl-C, a failed chunk, the caller stopping early
+        interrupted = True
+        raise
     finally:
-        if own_client is not None:
-            own_client.close()
-        if own_cluster is not None:
-            own_cluster.close()
+        # Torn down mid-run, the in-process scheduler logs a CRITICAL traceback for every
+        # task it can no longer report to the closed client: cancel first and keep Dask
+        # quiet while closing (the one-line reason is the exception being raised).
+        with _logging_disabled() if interrupted else contextlib.nullcontext():
+            if interrupted and client is not None and futures:
+                with contextlib.suppress(Exception):
+                    client.cancel(list(futures))
+            if own_client is not None:
+                own_client.close()
+            if own_cluster is not None:
+                own_cluster.close()
+
+
+@contextlib.contextmanager
+def _logging_disabled():
+    """All logging off inside the block (restored after)."""
+    import logging
+
+    old = logging.root.manager.disable
+    logging.disable(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logging.disable(old)
 
 
 # ---------------------------------------------------------------------------------------

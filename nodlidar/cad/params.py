@@ -162,8 +162,14 @@ class MountParams:
                 self.servo_shaft_offset_mm, f"< servo_length_mm = {self.servo_length_mm}")
         require(self.stl_tolerance_mm <= min(0.5, mw / 4), "cad.stl_tolerance_mm",
                 self.stl_tolerance_mm, f"<= min(0.5, min_wall_mm/4 = {mw / 4})")
-        require(0 < self.stl_angular_tolerance_rad <= 0.5, "cad.stl_angular_tolerance_rad",
-                self.stl_angular_tolerance_rad, "0 < value <= 0.5 rad")
+        require(0.01 <= self.stl_angular_tolerance_rad <= 0.5, "cad.stl_angular_tolerance_rad",
+                self.stl_angular_tolerance_rad, "0.01 .. 0.5 rad (finer explodes the mesh)")
+        # the linear deflection is absolute: finer than 1 um, or parts larger than 1 m
+        # (any *_mm), make meshes of millions of triangles per part
+        require(self.stl_tolerance_mm >= 0.001, "cad.stl_tolerance_mm", self.stl_tolerance_mm,
+                ">= 0.001 mm (finer explodes the mesh)")
+        for name in positive:
+            require(getattr(self, name) <= 1000, f"cad.{name}", getattr(self, name), "<= 1000 mm")
 
     @staticmethod
     def clearance_dia_mm(screw: str) -> float:
@@ -186,10 +192,9 @@ def mount_params_from_dict(table: Any) -> MountParams:
         table = {}
     if not isinstance(table, dict):
         raise ParameterError("cad", table, "a TOML table of fabrication parameters")
-    known = [f.name for f in fields(MountParams)]
-    for key, val in table.items():
-        if key not in known:
-            raise ParameterError(f"cad.{key}", val, "a known key: " + ", ".join(known))
+    from ..validation import check_keys  # unknown keys: the nearest valid one named
+
+    check_keys(table, [f.name for f in fields(MountParams)], "cad")
     return MountParams(**table)
 
 

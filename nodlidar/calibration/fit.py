@@ -60,7 +60,7 @@ from scipy.optimize import least_squares
 
 from ..beams import BeamModel
 from ..closed_form import eq4_8_point
-from ..errors import CalibrationError, ParameterError, require
+from ..errors import CalibrationError, require
 from ..geometry import Perturbation
 from .walls import Plane, WallCapture, check_wall_orientations, fit_plane
 
@@ -99,6 +99,7 @@ class CalibrationConfig:
             require(float(v).is_integer(), f"calibration.{name}", v, "a whole number")
         require(self.min_walls >= 3, "calibration.min_walls", self.min_walls,
                 ">= 3 (fewer walls cannot separate the three parameters)")
+        require(self.rounds <= 50, "calibration.rounds", self.rounds, "1 .. 50")
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -114,13 +115,9 @@ def calibration_config(source=None) -> CalibrationConfig:
         table = source
     else:
         table = source.sections.get("calibration", {})
-    if not isinstance(table, dict):
-        raise ParameterError("calibration", table, "a table")
-    known = {f.name for f in fields(CalibrationConfig)}
-    extra = sorted(set(table) - known)
-    if extra:
-        raise ParameterError(f"calibration.{extra[0]}", table[extra[0]],
-                             f"one of the keys {', '.join(sorted(known))}")
+    from ..validation import check_keys  # unknown keys: the nearest valid one named
+
+    check_keys(table, [f.name for f in fields(CalibrationConfig)], "calibration")
     return CalibrationConfig(**table)
 
 

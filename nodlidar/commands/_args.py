@@ -24,6 +24,9 @@ __all__ = ["bounded_float", "bounded_int", "finite_float", "add_force_arg", "che
 
 
 def _fmt(x: float) -> str:
+    """Bounds as the user would type them: 2000000, not 2e+06."""
+    if float(x).is_integer() and abs(x) < 1e19:
+        return str(int(x))
     return f"{x:g}"
 
 

@@ -7,6 +7,15 @@ import math
 import numpy as np
 
 from ..errors import ParameterError
+from ..validation import check_number
+from ._args import check_output_path
+
+#: Simulated seconds per wall second. Below 0.01 a sweep of a few simulated seconds takes
+#: minutes (1e-9 hung for ever); above 1000 the emulator cannot keep the pace.
+SIM_RATE_MIN, SIM_RATE_MAX = 0.01, 1000.0
+#: Pose bounds: positions [m] (clouds are written as float32, ~1 mm resolution at 10 km)
+#: and angles [deg].
+POSE_MAX_M, POSE_MAX_DEG = 10_000.0, 360.0
 
 #: Shown in help texts for the default design (:data:`nodlidar.paper.PAPER_DESIGN`).
 DESIGN_HELP = "design file (default: the paper's build, design/urg04lx-paper.toml)"
@@ -32,7 +41,8 @@ def add_device_args(p, *, design: bool = True, scene: str | None = None) -> None
     p.add_argument("--servo-port", metavar="URL", default=None,
                    help="Dynamixel bus port (default: the built-in simulated sensor)")
     p.add_argument("--sim-rate", type=float, default=1.0, metavar="X",
-                   help="simulated sensor: simulated seconds per wall second (e.g. 5)")
+                   help="simulated sensor: simulated seconds per wall second "
+                   f"(e.g. 5; {SIM_RATE_MIN:g} .. {SIM_RATE_MAX:g})")
     p.add_argument("--sim-transport", choices=("pty", "tcp"), default="pty",
                    help="simulated sensor: serve over pseudo-terminals or TCP (default pty)")
     p.add_argument("--scene", default=scene,
@@ -41,6 +51,7 @@ def add_device_args(p, *, design: bool = True, scene: str | None = None) -> None
     p.add_argument("--perturb", choices=("none", "table1"), default="none",
                    help="simulated sensor: as-built mirror errors (table1 = the paper's Table I; "
                         "default none = built exactly as designed)")
+    p.set_defaults(_scene_default=scene)
 
 
 def _stderr(msg: str) -> None:
@@ -54,10 +65,30 @@ def session_from_args(args, **kw):
     it too, e.g. ``seed``); its status and progress lines go to stderr."""
     from ..runtime.session import Session
 
+    check_sim_options(args)
     return Session(getattr(args, "design", None), port=args.port, servo_port=args.servo_port,
                    calibration=getattr(args, "calibration", None), transport=args.sim_transport,
                    sim_rate=args.sim_rate, scene=args.scene, noise=not args.no_noise,
                    sim_perturbations=sim_perturbations(args.perturb), log=_stderr, **kw)
+
+
+def check_sim_options(args) -> None:
+    """Refuse a ``--sim-rate`` out of bounds, and simulated-sensor options given with real
+    devices (``--port``/``--servo-port``): they would be silently ignored."""
+    # checked here rather than by argparse so that main() returns 2 (in-process callers)
+    check_number(args.sim_rate, "--sim-rate", lo=SIM_RATE_MIN, hi=SIM_RATE_MAX,
+                 unit="(simulated seconds per wall second)")
+    if getattr(args, "port", None) is None and getattr(args, "servo_port", None) is None:
+        return
+    given = [("--sim-rate", args.sim_rate, args.sim_rate != 1.0),
+             ("--sim-transport", args.sim_transport, args.sim_transport != "pty"),
+             ("--scene", args.scene, args.scene != getattr(args, "_scene_default", None)),
+             ("--no-noise", True, args.no_noise),
+             ("--perturb", args.perturb, args.perturb != "none")]
+    for opt, value, on in given:
+        if on:
+            raise ParameterError(opt, value, "only with the simulated sensor (it does not apply "
+                                             "with --port/--servo-port)")
 
 
 def sim_perturbations(name: str):
@@ -72,9 +103,11 @@ def sim_perturbations(name: str):
 def add_frame_args(p) -> None:
     p.add_argument("--frame", choices=("sensor", "robot", "world"), default="sensor",
                    help="output frame (default sensor)")
-    p.add_argument("--robot2sensor", type=float, nargs=6, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+    p.add_argument("--robot2sensor", type=float, nargs=6,
+                   metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
                    default=None, help="sensor pose on the robot [m, deg] (frames robot/world)")
-    p.add_argument("--world2robot", type=float, nargs=6, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+    p.add_argument("--world2robot", type=float, nargs=6,
+                   metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
                    default=None, help="robot pose in the world [m, deg] (frame world)")
 
 
@@ -82,8 +115,11 @@ def pose_matrix(v, name: str) -> np.ndarray:
     """4x4 from x y z [m] roll pitch yaw [deg] (R = Rz(yaw) Ry(pitch) Rx(roll))."""
     if v is None:
         return np.eye(4)
-    if not all(math.isfinite(x) for x in v):
-        raise ParameterError(name, v, "six finite numbers: x y z [m] roll pitch yaw [deg]")
+    if not (len(v) == 6 and all(math.isfinite(x) for x in v)
+            and all(abs(x) <= POSE_MAX_M for x in v[:3])
+            and all(abs(x) <= POSE_MAX_DEG for x in v[3:])):
+        raise ParameterError(name, list(v), f"x y z [m] within +-{POSE_MAX_M:g} and roll pitch "
+                                            f"yaw [deg] within +-{POSE_MAX_DEG:g}")
     from scipy.spatial.transform import Rotation
 
     T = np.eye(4)
@@ -97,6 +133,11 @@ def frame_kwargs(args) -> dict:
             "world2robot": pose_matrix(args.world2robot, "--world2robot")}
 
 
-def check_out(path: str, field: str = "--out") -> None:
-    if not path.lower().endswith((".ply", ".pcd")):
+def check_out(path: str, field: str = "--out", *, force: bool = True) -> None:
+    """A cloud output: a .ply/.pcd file name in an existing writable directory, not a
+    directory; an existing file only with ``force`` (pass ``force=args.force`` once the
+    command has ``--force``, :func:`nodlidar.commands._args.add_force_arg`). Checked
+    before the sweep, so a bad path fails at once."""
+    if not str(path).lower().endswith((".ply", ".pcd")):
         raise ParameterError(field, path, "a .ply or .pcd file name")
+    check_output_path(path, force=force, kind="file", option=field)

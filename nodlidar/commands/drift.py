@@ -10,14 +10,17 @@ from __future__ import annotations
 import json
 import sys
 
+from ._args import bounded_float
+
 
 def register(sub) -> None:
     p = sub.add_parser("drift", help="bearing of each mirror's first/last beam vs range",
                        description=__doc__)
     p.add_argument("design", help="design TOML file, e.g. design/urg04lx-paper.toml")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    p.add_argument("--ranges", type=float, nargs="+", default=[0.4, 1.0, 2.0, 6.0],
-                   metavar="M", help="arc radii [m] (default: 0.4 1 2 6)")
+    p.add_argument("--ranges", type=bounded_float(0, 100, lo_open=True, unit="m"), nargs="+",
+                   default=[0.4, 1.0, 2.0, 6.0], metavar="M",
+                   help="arc radii [m], 0 < R <= 100 (default: 0.4 1 2 6)")
     p.set_defaults(func=run)
 
 

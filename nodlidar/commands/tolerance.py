@@ -11,15 +11,21 @@ from __future__ import annotations
 import json
 import sys
 
+from ..analysis.tolerance import MAX_SAMPLES
+from ._args import bounded_int
+
 
 def register(sub) -> None:
     p = sub.add_parser("tolerance", help="Monte Carlo tolerance analysis and sensitivities",
                        description=__doc__)
     p.add_argument("design", help="design TOML file")
-    p.add_argument("--samples", type=int, help="number of sampled builds")
-    p.add_argument("--seed", type=int, help="random seed")
-    p.add_argument("--workers", type=int, help="0: in process; N: local Dask cluster")
-    p.add_argument("--scheduler", metavar="ADDR", help="an existing Dask scheduler")
+    p.add_argument("--samples", type=bounded_int(1, MAX_SAMPLES),
+                   help=f"number of sampled builds (1 .. {MAX_SAMPLES})")
+    p.add_argument("--seed", type=bounded_int(0, 2**63 - 1), help="random seed (>= 0)")
+    p.add_argument("--workers", type=bounded_int(0, 256),
+                   help="0: in process; N: local Dask cluster of N workers (<= 256)")
+    p.add_argument("--scheduler", metavar="ADDR",
+                   help="an existing Dask scheduler, e.g. tcp://host:8786")
     p.add_argument("--json", action="store_true", help="print JSON instead of tables")
     p.set_defaults(func=run)
 
@@ -35,11 +41,22 @@ def run(args) -> int:
         raise ParameterError("--samples", args.samples, "an integer >= 1")
     if args.workers is not None and args.workers < 0:
         raise ParameterError("--workers", args.workers, "an integer >= 0")
+    if args.scheduler is not None:
+        from ..analysis.tolerance import _check_scheduler
+
+        try:  # before any work (and the progress bar): one line within a few seconds
+            _check_scheduler(args.scheduler)
+        except ParameterError as exc:
+            raise ParameterError("--scheduler", exc.value, exc.allowed) from None
     design = solve(load_design(args.design))
     progress, close = tqdm_progress("Monte Carlo")
     try:
         res = monte_carlo(design, samples=args.samples, seed=args.seed, workers=args.workers,
                           scheduler=args.scheduler, progress=progress)
+    except ParameterError as exc:
+        if exc.field != "scheduler":
+            raise
+        raise ParameterError("--scheduler", exc.value, exc.allowed) from None
     finally:
         close()
     sens = sensitivities(design)

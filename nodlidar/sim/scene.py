@@ -46,7 +46,6 @@ static world, ``1 + k`` mover ``k``.
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -423,14 +422,13 @@ class Scene:
     @classmethod
     def from_toml(cls, path: str | Path) -> Scene:
         """Load a scene file (format in the module docstring)."""
+        from ..validation import read_toml  # a FIFO, directory or binary file: one line
+
         path = Path(path)
-        try:
-            data = tomllib.loads(path.read_text())
-        except FileNotFoundError:
+        if not (path.exists() or path.is_symlink()):
             raise ParameterError("scene", str(path), "an existing TOML file or a built-in name: "
-                                 + ", ".join(BUILTIN_SCENES)) from None
-        except tomllib.TOMLDecodeError as e:
-            raise DesignFileError(f"{path}: {e}") from None
+                                 + ", ".join(BUILTIN_SCENES))
+        data = read_toml(path, "scene", error=DesignFileError)
         data.setdefault("name", path.stem)
         return scene_from_dict(data, str(path))
 
