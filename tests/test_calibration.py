@@ -118,9 +118,10 @@ MIXED_WALLS = [WallPose(0.7, np.radians(-30.0)), WallPose(1.3, 0.0), WallPose(2.
 def test_simulated_sensor_walls_at_mixed_distances(design):
     # Walls at 0.7, 1.3 and 2 m (1 cm to 2 cm range noise): the as-built L2/R2 fold 22 beams
     # of the design's direct window, which the plane fit's outlier test cannot see under 2 cm
-    # noise. Measured with the design's beam map only (rounds=1): dd off by up to 4.9 mm
-    # (> 8 sigma); with the map re-traced through the fitted mirrors (the default): within
-    # 0.4 mm and 3 sigma, seed 1.
+    # noise. Measured with the design's beam map only (rounds=1): dd off by > 8 sigma with the
+    # old PCA planes, 4.2 sigma with the MSAC planes and noise-model gates (they reject some
+    # of the folded beams, not all); with the map re-traced through the fitted mirrors (the
+    # default): within 0.4 mm and 3 sigma, seed 1.
     caps = simulated_captures(design, TRUTH, MIXED_WALLS, seed=1)
     res = calibrate(design, caps)
     assert res.rounds >= 2 and res.beams_remapped > 0
@@ -131,7 +132,7 @@ def test_simulated_sensor_walls_at_mixed_distances(design):
     # the same data with the design's map: the bias the re-trace removes
     one = calibrate(design, caps, config=CalibrationConfig(rounds=1))
     z = max(float(np.max(np.abs(e) / one.mirrors[n].sigma)) for n, e in _err(one).items())
-    assert one.rounds == 1 and z > 5, z
+    assert one.rounds == 1 and z > 3.5, z
 
 
 def test_points_inside_the_band_after_not_before(sim_result):
@@ -163,12 +164,18 @@ def test_sigma_matches_the_scatter_over_seeds(design):
 
 def test_paper_model_cannot_fit(design, sim_result):
     # Documented finding (docs/paper-reproduction.md): eqs 4-8 as printed misplace
-    # reflected points by decimetres, so fitting with them leaves decimetre residuals and
-    # parameters on the bounds while the exact model reaches the noise floor.
+    # reflected points by decimetres. The noise gates keep only the few points that happen
+    # to land near a wall, so the fit is refused by the quality gates for every mirror
+    # (parameters on bounds, most points off the wall) while the exact model passes them.
     caps, exact = sim_result
     paper = calibrate(design, caps, model="paper", config=CalibrationConfig(min_points=10))
+    assert exact.ok, exact.problems
+    assert not paper.ok
     for name in exact.mirrors:
-        assert paper.mirrors[name].after.rms_m > 10 * exact.mirrors[name].after.rms_m
+        assert any(p.startswith(f"mirror {name}:") for p in paper.problems), paper.problems
+        # before the gates: the paper model's points are decimetres off the walls
+        m = paper.mirrors[name]
+        assert np.sqrt(np.mean(m.residual_after ** 2)) > 10 * exact.mirrors[name].after.rms_m
 
 
 def test_calibrated_beam_model_puts_points_on_the_wall(design):
@@ -377,13 +384,23 @@ def test_design_calibration_table_is_used(design):
         calibrate(strict, caps)
 
 
-def test_cli_paper_model_runs(capsys):
-    rc = main(["calibrate", "--sim", "--design", str(PAPER), "--model", "paper", "--json"])
-    assert rc == 0
-    data = json.loads(capsys.readouterr().out)
-    assert data["model"] == "paper"
-    # the literal eqs 4-8 leave decimetre residuals (documented finding, see above)
-    assert all(m["after"]["rms_m"] > 0.1 for m in data["mirrors"].values())
+def test_cli_paper_model_is_refused_by_the_gates(capsys, tmp_path):
+    # the literal eqs 4-8 cannot fit (documented finding, see above): the CLI says why per
+    # mirror, exits 2 and writes no file; --force writes it with the problems recorded
+    out = tmp_path / "cal.toml"
+    rc = main(["calibrate", "--sim", "--design", str(PAPER), "--model", "paper", "--json",
+               "--out", str(out)])
+    cap = capsys.readouterr()
+    assert rc == 2 and not out.exists()
+    data = json.loads(cap.out)
+    assert data["model"] == "paper" and not data["ok"] and data["written"] is False
+    for name in data["mirrors"]:
+        assert f"nodlidar calibrate: mirror {name}:" in cap.err
+    assert "no calibration file written" in cap.err
+    rc = main(["calibrate", "--sim", "--design", str(PAPER), "--model", "paper", "--out",
+               str(out), "--force"])
+    assert rc == 0 and out.exists()
+    assert read_calibration(out).problems == tuple(data["problems"])
 
 
 def test_capture_from_runtime_scans_and_nod_samples(design):
@@ -453,7 +470,10 @@ def test_calibrate_from_recordings_end_to_end(tmp_path, capsys):
         # interpolated servo samples on a synchronised clock, whose error the fit's sigma
         # does not include
         assert abs(e[0]) <= 3e-3 and abs(e[1]) <= 3e-3 and abs(e[2]) <= 1e-3, (name, e)
-        assert m["after"]["within_band"] >= 0.95
+        # in band: the noise model predicts 96.3 % for these points; measured 93.5-94.3 %
+        # (L1) since the noise gates replaced the MAD trimming - the interpolated nod angles
+        # add scatter the model does not include (sigma ~1.1x), and the gate keeps it
+        assert m["after"]["within_band"] >= 0.93, (name, m["after"], m["expected_within_band"])
     design = solve(load_design(PAPER))
     assert load_calibration(out, design).id == data["id"]
 

@@ -20,27 +20,49 @@ Layout::
     rms_m = ...; max_abs_m = ...; within_band = ...; band_m = 0.0225; n = ...
     [mirrors.L1.residuals_before]
     ...
+    ambiguous_steps = [594, 642, 722]   # beams whose mirror changes within 3 sigma: dropped
+    problems = []                       # failed quality gates (only with calibrate --force)
+    [lidar]                             # only when fitted: r_measured = (1 + scale) r + offset
+    range_offset_m = 0.02
+    range_scale = 0.01
+    [covariance]                        # the joint fit's full covariance (SI units)
+    parameters = ["L1.dalpha_rad", "L1.dbeta_rad", "L1.dd_m", ...]
+    matrix = [[...], ...]
 
-The runtime applies it as ``design.beam_model(load_calibration(path, design).perturbations)``
-and records ``.id`` with every cloud. A file made for another design (different geometric
-hash) is refused.
+The runtime applies it as ``AssemblyModel.from_design(design, cal.perturbations, cal.id)``
+and records ``.id`` with every cloud; ``cal.perturbations`` carries ``ambiguous_steps``
+(:class:`CalibratedPerturbations`), which the assembly drops. A file made for another
+design (different geometric hash) is refused. The lidar's range model, when fitted, is
+stored and reported; the runtime assembly does not apply it yet.
 """
 
 from __future__ import annotations
 
 import hashlib
-import tomllib
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..errors import CalibrationError, DesignFileError
 from ..geometry import Perturbation
 from .fit import CalibrationResult, design_hash
 
-__all__ = ["Calibration", "calibration_from_result", "write_calibration", "load_calibration",
-           "read_calibration"]
+__all__ = ["Calibration", "CalibratedPerturbations", "calibration_from_result",
+           "write_calibration", "load_calibration", "read_calibration"]
+
+
+class CalibratedPerturbations(dict):
+    """Mirror name -> Perturbation, plus ``ambiguous_steps``: the lidar steps whose mirror
+    assignment is uncertain under this calibration (the runtime assembly drops them)."""
+
+    ambiguous_steps: tuple[int, ...] = ()
+
+    def __init__(self, perturbations=(), ambiguous_steps=()):
+        super().__init__(perturbations)
+        self.ambiguous_steps = tuple(int(s) for s in ambiguous_steps)
 
 
 @dataclass(frozen=True)
@@ -65,6 +87,15 @@ class Calibration:
         Mirror name -> residual statistics (``ResidualStats.to_dict``).
     source : str
         Where the data came from.
+    ambiguous_steps : tuple of int
+        Steps whose mirror changes within ``ambiguity_sigma`` of the fit (runtime drops them).
+    problems : tuple of str
+        Quality gates that failed (a file written with ``--force``).
+    intrinsics : dict
+        Fitted ``range_offset_m`` / ``range_scale`` (and sigmas), if any.
+    parameter_names : tuple of str
+    covariance : list of lists
+        Full covariance of ``parameter_names`` (SI units).
     """
 
     id: str
@@ -77,6 +108,16 @@ class Calibration:
     residuals: dict[str, dict[str, float]] = field(default_factory=dict)
     residuals_before: dict[str, dict[str, float]] = field(default_factory=dict)
     source: str = ""
+    ambiguous_steps: tuple[int, ...] = ()
+    problems: tuple[str, ...] = ()
+    intrinsics: dict[str, float] = field(default_factory=dict)
+    parameter_names: tuple[str, ...] = ()
+    covariance: tuple[tuple[float, ...], ...] = ()
+
+    def __post_init__(self) -> None:
+        # the runtime takes the mirrors and the beams to drop from one object
+        object.__setattr__(self, "perturbations",
+                           CalibratedPerturbations(self.perturbations, self.ambiguous_steps))
 
     def to_dict(self) -> dict[str, Any]:
         mirrors: dict[str, Any] = {}
@@ -90,8 +131,16 @@ class Calibration:
             if name in self.residuals_before:
                 m["residuals_before"] = dict(self.residuals_before[name])
             mirrors[name] = m
-        return {"id": self.id, "created": self.created, "model": self.model, "source": self.source,
-                "design": {"name": self.design_name, "hash": self.design_hash}, "mirrors": mirrors}
+        out = {"id": self.id, "created": self.created, "model": self.model, "source": self.source,
+               "ambiguous_steps": [int(s) for s in self.ambiguous_steps],
+               "problems": list(self.problems),
+               "design": {"name": self.design_name, "hash": self.design_hash}, "mirrors": mirrors}
+        if self.intrinsics:
+            out["lidar"] = dict(self.intrinsics)
+        if self.parameter_names:
+            out["covariance"] = {"parameters": list(self.parameter_names),
+                                 "matrix": [[float(v) for v in row] for row in self.covariance]}
+        return out
 
 
 def calibration_from_result(result: CalibrationResult, *, source: str = "",
@@ -107,7 +156,10 @@ def calibration_from_result(result: CalibrationResult, *, source: str = "",
         sigma={k: tuple(float(v) for v in m.sigma) for k, m in result.mirrors.items()},
         residuals={k: m.after.to_dict() for k, m in result.mirrors.items()},
         residuals_before={k: m.before.to_dict() for k, m in result.mirrors.items()},
-        source=source)
+        source=source, ambiguous_steps=tuple(result.ambiguous_steps),
+        problems=tuple(result.problems), intrinsics=dict(result.intrinsics),
+        parameter_names=tuple(result.parameter_names),
+        covariance=tuple(tuple(float(v) for v in row) for row in np.asarray(result.covariance)))
 
 
 def write_calibration(path: str | Path, cal: Calibration | CalibrationResult, **kw) -> Calibration:
@@ -129,13 +181,10 @@ def _num(table: dict, key: str, where: str) -> float:
 
 def read_calibration(path: str | Path) -> Calibration:
     """Read a calibration file without checking which design it belongs to."""
+    from ..validation import read_toml
+
     p = Path(path)
-    if not p.is_file():
-        raise DesignFileError(f"calibration file not found: {p}")
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise DesignFileError(f"{p}: malformed TOML: {exc}") from None
+    data = read_toml(p, "calibration", error=DesignFileError)
     for key in ("id", "design", "mirrors"):
         if key not in data:
             raise DesignFileError(f"{p}: not a calibration file (missing '{key}')")
@@ -156,10 +205,25 @@ def read_calibration(path: str | Path) -> Calibration:
             res[name] = dict(m["residuals"])
         if "residuals_before" in m:
             res0[name] = dict(m["residuals_before"])
+    amb = data.get("ambiguous_steps", [])
+    if not isinstance(amb, list) or not all(isinstance(v, int) and not isinstance(v, bool)
+                                            for v in amb):
+        raise DesignFileError(f"{p}: 'ambiguous_steps' must be a list of integers (lidar steps)")
+    lidar = data.get("lidar", {})
+    if not isinstance(lidar, dict):
+        raise DesignFileError(f"{p}: [lidar] must be a table")
+    intr = {k: _num(lidar, k, f"{p} [lidar]") for k in lidar}
+    cov = data.get("covariance", {})
+    names, matrix = tuple(cov.get("parameters", ())), tuple(tuple(r) for r in cov.get("matrix", ()))
+    if len(matrix) != len(names) or any(len(r) != len(names) for r in matrix):
+        raise DesignFileError(f"{p}: [covariance] matrix must be {len(names)} x {len(names)} "
+                              "(one row and column per parameter)")
     return Calibration(id=str(data["id"]), design_name=str(des["name"]), design_hash=str(des["hash"]),
                        created=str(data.get("created", "")), model=str(data.get("model", "exact")),
                        perturbations=perts, sigma=sig, residuals=res, residuals_before=res0,
-                       source=str(data.get("source", "")))
+                       source=str(data.get("source", "")), ambiguous_steps=tuple(amb),
+                       problems=tuple(str(x) for x in data.get("problems", [])),
+                       intrinsics=intr, parameter_names=names, covariance=matrix)
 
 
 def load_calibration(path: str | Path, design) -> Calibration:

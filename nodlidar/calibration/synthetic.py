@@ -20,7 +20,7 @@ from ..geometry import Perturbation
 from .walls import WallCapture
 
 __all__ = ["WallPose", "DEFAULT_WALLS", "sweep_nod", "synthetic_capture", "synthetic_captures",
-           "simulated_capture", "simulated_captures"]
+           "simulated_capture", "simulated_captures", "scene_captures", "with_range_error"]
 
 
 @dataclass(frozen=True)
@@ -41,8 +41,10 @@ class WallPose:
     yaw_rad: float = 0.0
 
     def __post_init__(self) -> None:
-        require(self.distance_m > 0, "wall.distance_m", self.distance_m, "> 0 m")
-        require(abs(self.yaw_rad) < np.radians(60), "wall.yaw_rad", self.yaw_rad, "|yaw| < 60 deg")
+        require(float(self.distance_m) > 0, "wall distance", f"{float(self.distance_m):g} m", "> 0 m")
+        # in degrees: the unit the user types (--yaw-deg)
+        require(abs(float(self.yaw_rad)) < np.radians(60), "wall yaw",
+                f"{np.degrees(float(self.yaw_rad)):g} deg", "|yaw| < 60 deg")
 
     @property
     def normal(self) -> np.ndarray:
@@ -133,17 +135,29 @@ def synthetic_captures(design, perturbations=None, walls=DEFAULT_WALLS, *, seed:
 
 def simulated_capture(design, wall: WallPose, perturbations: dict[str, Perturbation] | None = None,
                       *, seed: int = 0, noise: bool = True, n_scans: int | None = None,
-                      name: str = "", size_m=(8.0, 4.0)) -> WallCapture:
+                      name: str = "", size_m=(8.0, 4.0), scene=None) -> WallCapture:
     """One nodded sweep of ``wall`` by the simulated sensor (:mod:`nodlidar.sim`).
 
     The independent data source: an embree ray tracer with the mirrors as finite
     reflecting rectangles (``design.patches(perturbations)``), each beam cast at its own
     time and nod angle, and the URG measurement model (noise, mm rounding, range limits).
+
+    ``scene`` (a :class:`~nodlidar.sim.scene.Scene`): capture that scene instead of a lone
+    wall, the sensor turned by ``-wall.yaw_rad`` from the scene's own heading (so a wall
+    straight ahead in the scene appears at azimuth ``wall.yaw_rad``, as with the lone
+    wall); ``wall.distance_m`` is then not used - the scene places the walls.
     """
+    from dataclasses import replace
+
     from ..sim.raycast import SceneSimulator
     from ..sim.scene import wall_scene
 
-    sim = SceneSimulator(design, wall_scene(wall.distance_m, wall.yaw_rad, size_m), perturbations)
+    if scene is None:
+        scene = wall_scene(wall.distance_m, wall.yaw_rad, size_m)
+    else:
+        scene = replace(scene, sensor=replace(scene.sensor,
+                                              yaw_rad=scene.sensor.yaw_rad - wall.yaw_rad))
+    sim = SceneSimulator(design, scene, perturbations)
     lidar, nod = design.lidar, design.spec.nod
     if n_scans is None:
         n_scans = max(3, int(np.ceil(nod.sweep_period_s / lidar.scan_period_s)))
@@ -167,3 +181,21 @@ def simulated_captures(design, perturbations=None, walls=DEFAULT_WALLS, *, seed:
     """:func:`simulated_capture` for each wall (seeds ``seed*100 + k``)."""
     return [simulated_capture(design, w, perturbations, seed=seed * 100 + k, noise=noise, **kw)
             for k, w in enumerate(walls)]
+
+
+def scene_captures(design, scene, yaws_rad, perturbations=None, *, seed: int = 0,
+                   noise: bool = True, **kw) -> list[WallCapture]:
+    """One :func:`simulated_capture` of ``scene`` per sensor heading: the sensor turned by
+    ``-yaw`` (so the scene's wall ahead appears at azimuth ``yaw``), seeds ``seed*100 + k``."""
+    return [simulated_capture(design, WallPose(1.0, float(y)), perturbations, seed=seed * 100 + k,
+                              noise=noise, scene=scene,
+                              name=f"{scene.name} yaw {np.degrees(y):+.0f} deg", **kw)
+            for k, y in enumerate(yaws_rad)]
+
+
+def with_range_error(capture: WallCapture, offset_m: float = 0.0, scale: float = 0.0) -> WallCapture:
+    """The capture as a lidar with a range error would report it:
+    ``r_measured = (1 + scale) * r + offset_m`` (for the intrinsics fit)."""
+    return WallCapture(steps=capture.steps, ranges_m=(1.0 + scale) * capture.ranges_m + offset_m,
+                       nod_rad=capture.nod_rad, mirrors_deployed=capture.mirrors_deployed,
+                       name=capture.name)

@@ -15,8 +15,8 @@ import numpy as np
 
 from ..errors import CalibrationError, ParameterError
 
-__all__ = ["WallCapture", "Plane", "fit_plane", "check_wall_orientations", "save_capture",
-           "load_capture"]
+__all__ = ["WallCapture", "Plane", "fit_plane", "fit_plane_msac", "check_wall_orientations",
+           "save_capture", "load_capture"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,6 +177,101 @@ def fit_plane(points: np.ndarray, *, mad_k: float = 4.0, max_iter: int = 20,
     # least-squares covariance of the plane parameters from its own residual scatter
     A = pl.distance_jacobian(p[keep])
     s2 = rms**2 * len(A) / max(1, len(A) - 3)
+    object.__setattr__(pl, "cov", s2 * np.linalg.inv(A.T @ A))
+    return pl
+
+
+def _weighted_plane(p: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares plane (centroid, unit normal) of points ``p`` with weights ``w``."""
+    c = (w[:, None] * p).sum(0) / w.sum()
+    q = (p - c) * np.sqrt(w)[:, None]
+    _, _, vt = np.linalg.svd(q, full_matrices=False)
+    return c, vt[-1]
+
+
+def fit_plane_msac(points: np.ndarray, sigma_m: np.ndarray, *, k_sigma: float = 4.0,
+                   n_hypotheses: int = 256, min_points: int = 20, min_spread: float = 0.02,
+                   seed: int = 0, name: str = "capture") -> Plane:
+    """Robust plane of ``points`` by MSAC consensus, refined by weighted least squares.
+
+    Each hypothesis is the plane through three random points; its cost is
+    ``sum(min((d_i / t_i)^2, 1))`` with the per-point threshold ``t_i = k_sigma * sigma_m[i]``
+    (the lidar's range noise at that point's range: a point on the wall is within it with
+    probability > 99.99 % for ``k_sigma = 4``). The best hypothesis's inliers are refitted
+    by least squares weighted with ``1/sigma^2``, the inliers re-selected, until stable.
+    Clutter in front of the wall, a doorway's second wall behind it, a pole: they form
+    smaller consensus sets and end up as outliers rather than pulling the plane.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+        Points [m]; rows with NaN are ignored.
+    sigma_m : (n,) float
+        1-sigma range noise of each point [m].
+    k_sigma : float
+        Inlier threshold in sigmas.
+    n_hypotheses : int
+        Three-point samples tried (vectorised: all at once).
+    min_points, min_spread, name
+        As :func:`fit_plane`.
+    seed : int
+        Sampling seed (the result is deterministic).
+
+    Returns
+    -------
+    Plane
+        ``inliers`` over the input rows; ``rms_m`` over the inliers; ``cov`` from the
+        weighted fit.
+    """
+    p = np.asarray(points, dtype=float)
+    sig = np.broadcast_to(np.asarray(sigma_m, dtype=float), (len(p),))
+    finite = np.all(np.isfinite(p), axis=1) & np.isfinite(sig) & (sig > 0)
+    n_fin = int(finite.sum())
+    if n_fin < min_points:
+        raise CalibrationError(f"{name}: only {n_fin} direct-beam points on the wall; "
+                               f"a plane fit needs at least {min_points}")
+    idx = np.flatnonzero(finite)
+    q, t = p[idx], k_sigma * sig[idx]
+    rng = np.random.default_rng(seed)
+    tri = rng.integers(0, len(q), size=(n_hypotheses, 3))
+    a, b, c = q[tri[:, 0]], q[tri[:, 1]], q[tri[:, 2]]
+    nrm = np.cross(b - a, c - a)
+    ln = np.linalg.norm(nrm, axis=1)
+    good = ln > 1e-9
+    nrm, a = nrm[good] / ln[good, None], a[good]
+    if len(nrm) == 0:
+        raise CalibrationError(f"{name}: the direct-beam points do not span a plane")
+    # (hypotheses, points) distances in threshold units; memory: 256 x ~10^4 doubles
+    d = (q @ nrm.T - np.einsum("ij,ij->i", a, nrm)[None, :]) / t[:, None]
+    cost = np.minimum(d**2, 1.0).sum(axis=0)
+    inl = np.abs(d[:, int(np.argmin(cost))]) <= 1.0
+    w = 1.0 / sig[idx] ** 2
+    for _ in range(20):
+        if inl.sum() < min_points:
+            raise CalibrationError(f"{name}: fewer than {min_points} direct-beam points are "
+                                   f"consistent with one plane; is the wall flat and in view?")
+        cen, n = _weighted_plane(q[inl], w[inl])
+        new = np.abs((q - cen) @ n) <= t
+        if np.array_equal(new, inl):
+            break
+        inl = new
+    cen, n = _weighted_plane(q[inl], w[inl])
+    sv = np.linalg.svd(q[inl] - q[inl].mean(0), compute_uv=False)
+    if sv[1] < min_spread * sv[0]:
+        raise CalibrationError(f"{name}: the direct-beam points lie almost on a line (spread ratio "
+                               f"{sv[1] / sv[0]:.3g} < {min_spread}); a wall plane needs the head to "
+                               "nod during the capture")
+    if cen @ n < 0:
+        n = -n
+    dist = (q[inl] - cen) @ n
+    rms = float(np.sqrt(np.mean(dist**2)))
+    _, _, vt = np.linalg.svd(q[inl] - cen, full_matrices=False)
+    keep = np.zeros(len(p), dtype=bool)
+    keep[idx[inl]] = True
+    pl = Plane(point=cen, normal=n, rms_m=rms, inliers=keep, tangents=vt[:2])
+    A = pl.distance_jacobian(q[inl]) * np.sqrt(w[inl])[:, None]
+    # weighted LS covariance, scaled by the observed chi^2 per degree of freedom
+    s2 = float(np.sum(w[inl] * dist**2)) / max(1, int(inl.sum()) - 3)
     object.__setattr__(pl, "cov", s2 * np.linalg.inv(A.T @ A))
     return pl
 

@@ -321,25 +321,39 @@ class AssemblyModel:
     @classmethod
     def from_design(cls, design: Design,
                     perturbations: Mapping[str, Perturbation] | None = None,
-                    calibration_id: str = "none") -> AssemblyModel:
+                    calibration_id: str = "none",
+                    ambiguous_steps: Sequence[int] | None = None) -> AssemblyModel:
         """Build both BeamModels of a solved design (perturbed by a calibration).
 
         With perturbations, which mirror each beam reaches is re-traced through the
         perturbed finite patches (:func:`nodlidar.verify.verify`, first hit): a mirror
         turned by a few degrees takes beams the design gave to its neighbour or to no
         mirror, and the design's nominal assignment would misplace those points.
+
+        ``ambiguous_steps`` (default: the calibration's, ``perturbations.ambiguous_steps``
+        of a loaded calibration file): steps whose mirror is uncertain within the
+        calibration's errors; they are not ``clear``, so their points are dropped (counted
+        as ``blocked``) rather than put on a ray they may not have taken.
         """
         from ..beams import BeamModel
         from ..calibration.fit import design_hash
         from ..verify import verify
 
+        if ambiguous_steps is None:
+            ambiguous_steps = getattr(perturbations, "ambiguous_steps", ())
         perts = dict(perturbations) if perturbations else None
         side = np.array([0 if m.side == "L" else 1 for m in design.mirrors], dtype=int)
         v = verify(design, perts)
         deployed = BeamModel.build(design.lidar, design.patches(perts), v.hit,
                                    design.spec.nod.pivot_m)
+        clear = np.asarray(v.blocker == -1)
+        if len(ambiguous_steps):
+            amb = np.asarray(ambiguous_steps, dtype=int)
+            design.lidar.check_step(amb, "ambiguous_steps")
+            clear = clear.copy()
+            clear[amb - design.lidar.step_min] = False
         return cls(deployed, design.beam_model(perts, mirrors_deployed=False), side,
-                   np.asarray(v.blocker == -1), design.spec.name, design_hash(design.spec),
+                   clear, design.spec.name, design_hash(design.spec),
                    calibration_id if perts else "none")
 
     @property

@@ -29,6 +29,21 @@ takes either. TOML format (angles in degrees at this edge, ``*_deg``)::
     center_m = [2.0, 0.0, 0.4]
     normal = [-1.0, 0.0, 0.0]
     size_m = [4.0, 3.0]           # width (horizontal), height
+    [[wall]]                      # a vertical plane with openings (doorways, windows)
+    center_m = [1.0, 0.0, 1.25]
+    normal = [-1.0, 0.0, 0.0]     # horizontal; towards the side it is seen from
+    size_m = [6.0, 2.5]           # width, height
+    [[wall.opening]]              # a rectangular hole
+    offset_m = 0.6                # its centre's offset from the wall centre along the width,
+                                  # positive to the right as seen from the normal's side
+    width_m = 0.9
+    height_m = 2.0
+    bottom_m = 0.0                # above the wall's bottom edge (0: a doorway)
+    [[pole]]                      # a static vertical cylinder
+    center_m = [0.8, 0.3]         # axis (x, y)
+    radius_m = 0.05
+    height_m = 2.0
+    base_z_m = 0.0
     [[mover]]
     shape = "cylinder"            # or "box" (then size_m = [x, y, z])
     radius_m = 0.18
@@ -61,6 +76,9 @@ __all__ = [
     "HIT_STATIC",
     "Box",
     "Plane",
+    "Wall",
+    "Opening",
+    "Pole",
     "Room",
     "Cylinder",
     "Fixed",
@@ -176,6 +194,125 @@ class Plane:
     def mesh(self):
         u, v = self.axes()
         return _rect_mesh(np.asarray(self.center_m), u, v, *self.size_m)
+
+    def parts(self) -> list[tuple[str, Any]]:
+        return [(self.name, self.mesh())]
+
+
+@dataclass(frozen=True)
+class Opening:
+    """A rectangular hole in a :class:`Wall` (a doorway when ``bottom_m = 0``).
+
+    ``offset_m``: its centre's horizontal offset from the wall centre [m], positive to the
+    right as seen from the side the wall's normal points to; ``bottom_m``: its lower edge
+    above the wall's bottom edge [m].
+    """
+
+    offset_m: float
+    width_m: float
+    height_m: float
+    bottom_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for f in ("offset_m", "width_m", "height_m", "bottom_m"):
+            v = getattr(self, f)
+            require(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v),
+                    f"opening.{f}", v, "a finite number [m]")
+            object.__setattr__(self, f, float(v))
+        require(self.width_m > 0 and self.height_m > 0, "opening.width_m/height_m",
+                (self.width_m, self.height_m), "both > 0 m")
+        require(self.bottom_m >= 0, "opening.bottom_m", self.bottom_m, ">= 0 m")
+
+
+@dataclass(frozen=True)
+class Wall:
+    """A vertical rectangle with rectangular openings (doorways, windows).
+
+    ``normal`` must be horizontal; the width runs along ``u = z x normal`` (to the right as
+    seen from the normal's side), the height along z. Openings must lie inside the wall.
+    """
+
+    center_m: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    size_m: tuple[float, float]
+    openings: tuple[Opening, ...] = ()
+    name: str = "wall"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center_m", _v3(self.center_m, f"{self.name}.center_m"))
+        n = np.asarray(_v3(self.normal, f"{self.name}.normal"))
+        require(np.hypot(n[0], n[1]) > 1e-9 and abs(n[2]) < 1e-9 * np.linalg.norm(n),
+                f"{self.name}.normal", self.normal, "horizontal and non-zero (walls are vertical)")
+        object.__setattr__(self, "normal", tuple(map(float, n / np.linalg.norm(n))))
+        object.__setattr__(self, "size_m", _v2(self.size_m, f"{self.name}.size_m"))
+        require(min(self.size_m) > 0, f"{self.name}.size_m", self.size_m, "both > 0 m")
+        object.__setattr__(self, "openings", tuple(self.openings))
+        w, h = self.size_m
+        for i, o in enumerate(self.openings):
+            require(isinstance(o, Opening), f"{self.name}.opening[{i}]", type(o).__name__, "Opening")
+            require(abs(o.offset_m) + o.width_m / 2 <= w / 2 + 1e-9
+                    and o.bottom_m + o.height_m <= h + 1e-9, f"{self.name}.opening[{i}]",
+                    (o.offset_m, o.width_m, o.bottom_m, o.height_m),
+                    f"inside the {w:g} x {h:g} m wall")
+
+    def rects(self) -> list[tuple[float, float, float, float]]:
+        """The solid parts as ``(u0, u1, z0, z1)`` rectangles in wall coordinates [m]
+        (u from the centre along the width, z from the bottom edge)."""
+        w, h = self.size_m
+        cuts = sorted({-w / 2, w / 2} | {o.offset_m + s * o.width_m / 2 for o in self.openings
+                                          for s in (-1, 1)})
+        out = []
+        for u0, u1 in zip(cuts[:-1], cuts[1:]):
+            um = (u0 + u1) / 2
+            holes = sorted((o.bottom_m, o.bottom_m + o.height_m) for o in self.openings
+                           if abs(um - o.offset_m) < o.width_m / 2)
+            z = 0.0
+            for z0, z1 in holes:
+                if z0 > z:
+                    out.append((u0, u1, z, z0))
+                z = max(z, z1)
+            if z < h:
+                out.append((u0, u1, z, h))
+        return out
+
+    def mesh(self):
+        import trimesh
+
+        n = np.asarray(self.normal)
+        u = np.cross([0.0, 0.0, 1.0], n)
+        u /= np.linalg.norm(u)
+        zc = np.array([0.0, 0.0, 1.0])
+        bottom = np.asarray(self.center_m) - self.size_m[1] / 2 * zc
+        parts = [_rect_mesh(bottom + (u0 + u1) / 2 * u + (z0 + z1) / 2 * zc, u, zc, u1 - u0, z1 - z0)
+                 for u0, u1, z0, z1 in self.rects()]
+        return trimesh.util.concatenate(parts)
+
+    def parts(self) -> list[tuple[str, Any]]:
+        return [(self.name, self.mesh())]
+
+
+@dataclass(frozen=True)
+class Pole:
+    """A static vertical cylinder: axis at ``center_m`` (x, y), from ``base_z_m`` up."""
+
+    center_m: tuple[float, float]
+    radius_m: float
+    height_m: float
+    base_z_m: float = 0.0
+    name: str = "pole"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center_m", _v2(self.center_m, f"{self.name}.center_m"))
+        require(self.radius_m > 0, f"{self.name}.radius_m", self.radius_m, "> 0 m")
+        require(self.height_m > 0, f"{self.name}.height_m", self.height_m, "> 0 m")
+
+    def mesh(self):
+        import trimesh
+
+        T = np.eye(4)
+        T[:3, 3] = (*self.center_m, self.base_z_m + self.height_m / 2)
+        return trimesh.creation.cylinder(radius=self.radius_m, height=self.height_m,
+                                         sections=_CYLINDER_SECTIONS, transform=T)
 
     def parts(self) -> list[tuple[str, Any]]:
         return [(self.name, self.mesh())]
@@ -393,7 +530,7 @@ class Scene:
     ----------
     name : str
     statics : tuple
-        :class:`Room`, :class:`Box` and :class:`Plane` elements.
+        :class:`Room`, :class:`Box`, :class:`Plane`, :class:`Wall` and :class:`Pole` elements.
     movers : tuple of Mover
         Moving objects; ground-truth object id of mover ``k`` is ``1 + k``.
     sensor : SensorPose
@@ -401,7 +538,7 @@ class Scene:
     """
 
     name: str = "scene"
-    statics: tuple[Room | Box | Plane, ...] = ()
+    statics: tuple[Room | Box | Plane | Wall | Pole, ...] = ()
     movers: tuple[Mover, ...] = ()
     sensor: SensorPose = field(default_factory=SensorPose)
     description: str = ""
@@ -410,8 +547,8 @@ class Scene:
         object.__setattr__(self, "statics", tuple(self.statics))
         object.__setattr__(self, "movers", tuple(self.movers))
         for s in self.statics:
-            require(isinstance(s, Room | Box | Plane), "scene.statics", type(s).__name__,
-                    "Room, Box or Plane")
+            require(isinstance(s, Room | Box | Plane | Wall | Pole), "scene.statics",
+                    type(s).__name__, "Room, Box, Plane, Wall or Pole")
         for m in self.movers:
             require(isinstance(m, Mover), "scene.movers", type(m).__name__, "Mover")
 
@@ -451,7 +588,7 @@ def _trajectory_from_dict(d: Mapping[str, Any], where: str) -> Trajectory:
     raise ParameterError(f"{where}.trajectory", kind, "fixed, constant_velocity or back_and_forth")
 
 
-_KNOWN = {"name", "description", "sensor", "room", "box", "plane", "mover"}
+_KNOWN = {"name", "description", "sensor", "room", "box", "plane", "wall", "pole", "mover"}
 
 
 def scene_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Scene:
@@ -479,6 +616,27 @@ def scene_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Scene:
                                  p.get("name", f"plane{i}")))
         except KeyError as e:
             raise ParameterError(f"{source}: plane[{i}].{e.args[0]}", None, "required") from None
+    for i, w in enumerate(data.get("wall", [])):
+        where = f"{source}: wall[{i}]"
+        try:
+            ops = []
+            for j, o in enumerate(w.get("opening", [])):
+                try:
+                    ops.append(Opening(o["offset_m"], o["width_m"], o["height_m"],
+                                       o.get("bottom_m", 0.0)))
+                except KeyError as e:
+                    raise ParameterError(f"{where}.opening[{j}].{e.args[0]}", None,
+                                         "required") from None
+            statics.append(Wall(w["center_m"], w["normal"], w["size_m"], tuple(ops),
+                                w.get("name", f"wall{i}")))
+        except KeyError as e:
+            raise ParameterError(f"{where}.{e.args[0]}", None, "required") from None
+    for i, p in enumerate(data.get("pole", [])):
+        try:
+            statics.append(Pole(p["center_m"], p["radius_m"], p["height_m"],
+                                p.get("base_z_m", 0.0), p.get("name", f"pole{i}")))
+        except KeyError as e:
+            raise ParameterError(f"{source}: pole[{i}].{e.args[0]}", None, "required") from None
     movers = []
     for i, m in enumerate(data.get("mover", [])):
         where = f"{source}: mover[{i}]"
