@@ -13,6 +13,7 @@ import importlib
 import pkgutil
 import sys
 import textwrap
+from typing import NoReturn
 
 from . import __version__, commands
 from .commands._output import configure, paragraphs, plain
@@ -58,7 +59,7 @@ class _Parser(argparse.ArgumentParser):
         kwargs.setdefault("formatter_class", _Formatter)
         super().__init__(*args, **kwargs)
 
-    def error(self, message: str) -> None:  # noqa: D401
+    def error(self, message: str) -> NoReturn:  # noqa: D401
         self.exit(EXIT_USAGE, f"{self.prog}: {message}\n")
 
 

@@ -22,12 +22,12 @@ FRAME_WORLD, FRAME_SENSOR, FRAME_HEAD = "world", "sensor", "head"
 #: One point of the published cloud (little endian, 28 bytes): position [m] in float32
 #: (what every viewer reads), the measured range [m], the head pitch [rad], the mirror
 #: index (-1 direct) and the scan index (colour by any of them in Foxglove).
-CLOUD_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("range", "<f4"),
-                        ("nod", "<f4"), ("mirror", "<i4"), ("scan", "<i4")])
+_LAYOUT = (("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("range", "<f4"), ("nod", "<f4"),
+           ("mirror", "<i4"), ("scan", "<i4"))
+CLOUD_DTYPE = np.dtype(list(_LAYOUT))
 #: (name, byte offset, foxglove PackedElementField numeric type name)
-CLOUD_FIELDS = tuple((n, CLOUD_DTYPE.fields[n][1],
-                      {"<f4": "Float32", "<i4": "Int32"}[CLOUD_DTYPE.fields[n][0].str])
-                     for n in CLOUD_DTYPE.names)
+CLOUD_FIELDS = tuple((name, 4 * i, {"<f4": "Float32", "<i4": "Int32"}[t])
+                     for i, (name, t) in enumerate(_LAYOUT))
 
 
 def stamp(t_ns: int):

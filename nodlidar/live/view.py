@@ -81,9 +81,9 @@ class FoxgloveSink:
         self.host, self.port, self.name = host, int(port), name
         self.mcap_path = Path(mcap) if mcap is not None else None
         self.overwrite = overwrite
-        self.server = None
-        self.writer = None
-        self.context = None
+        self.server: Any = None    # foxglove.WebSocketServer once started
+        self.writer: Any = None    # foxglove.mcap.MCAPWriter with --mcap
+        self.context: Any = None
         self.channels: dict[str, Any] = {}
         self.messages: dict[str, int] = dict.fromkeys(TOPICS, 0)
         self._lock = threading.Lock()   # the tracker thread publishes too
