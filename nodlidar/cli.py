@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import pkgutil
 import sys
 import textwrap
@@ -110,6 +111,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     configure(int(args.verbose or 0) - int(args.quiet or 0))
+    logging.getLogger("nodlidar").debug("nodlidar %s, Python %s, %s", __version__,
+                                        sys.version.split()[0],
+                                        {k: v for k, v in vars(args).items() if not callable(v)})
     try:
         return int(args.func(args) or 0)
     except NodlidarError as exc:

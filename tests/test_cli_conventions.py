@@ -113,7 +113,8 @@ def test_quiet_and_verbose_on_a_runtime_command():
     for args in (("-q", "info", "--json"), ("info", "--json", "--quiet")):
         q = run(*args)
         assert q.stderr == "" and json.loads(q.stdout)["lidar"] == json.loads(normal.stdout)["lidar"]
-    assert "using the simulated sensor" in run("-v", "info").stderr
+    verbose = run("-v", "info").stderr
+    assert "using the simulated sensor" in verbose and "nodlidar 0.1" in verbose   # + debug lines
 
 
 def test_info_json_extra_is_an_object(capsys):

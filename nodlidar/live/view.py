@@ -16,6 +16,7 @@ points ``nodlidar scan``/``replay`` give) and publishes:
 
 from __future__ import annotations
 
+import logging
 import math
 import queue
 import threading
@@ -31,6 +32,8 @@ from ..errors import require
 from . import encode
 
 __all__ = ["TOPICS", "FoxgloveSink", "CloudWindow", "ViewStats", "run_view", "build_tracking"]
+
+_log = logging.getLogger(__name__)   # debug detail (nodlidar -v)
 
 TOPICS = {"cloud": "/nodlidar/cloud", "mirrors": "/nodlidar/mirrors", "tracks": "/nodlidar/tracks",
           "tf": "/tf"}
@@ -219,6 +222,8 @@ def run_view(session, sink: FoxgloveSink, *, duration_s: float | None = None,
         t = time.time_ns()
         sink.publish("cloud", encode.point_cloud(window.data(), t), t)
         sink.publish("mirrors", encode.mirror_update(patches, t), t)
+        _log.debug("cloud %d published: %d points (%d so far), %d scans", sink.messages["cloud"],
+                   min(window.n, max_points), window.total, stats.scans)
 
     def on_cloud(chunk) -> None:
         window.add(chunk)
