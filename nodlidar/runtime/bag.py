@@ -173,7 +173,7 @@ class BagRecorder:
         self.points = 0
         self.clouds_written = 0
         self.committed_scans = 0
-        self._w = None
+        self._w: Any = None
         self._pending: list[tuple[int, Any]] = []
         self._recent: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._done_until_s = -math.inf  # last beam of the last scan given its PointCloud2
@@ -437,8 +437,8 @@ class BagRecorder:
             if joint == "nod":
                 # pitch about y: (0, sin(a/2), 0, cos(a/2))
                 h = angle_rad / 2
-                cols = {"sec0": sec, "nsec0": nsec, "qx0": np.zeros_like(h), "qy0": np.sin(h),
-                        "qz0": np.zeros_like(h), "qw0": np.cos(h)}
+                cols: dict[str, Any] = {"sec0": sec, "nsec0": nsec, "qx0": np.zeros_like(h), "qy0": np.sin(h),
+                                        "qz0": np.zeros_like(h), "qw0": np.cos(h)}
             else:
                 ang = ros.mirror_joint_angle(angle_rad, self.lift[joint], self._hinge_z,
                                              self._lift_angle)
@@ -624,16 +624,17 @@ def _write_metadata(bag: Path, storage_file: Path, kind: str) -> None:
             duration = r.duration if count else 0
     except Exception as exc:  # noqa: BLE001 - any reader failure is one line to the user
         raise DesignFileError(f"{storage_file}: cannot recover ({_one_line(exc)})") from None
+    exts: list[tuple[Any, Any]] = [(c, c.ext) for c in conns]  # rosbag2 connections
     info = {
         "version": 9, "storage_identifier": kind, "relative_file_paths": [storage_file.name],
         "duration": {"nanoseconds": int(duration)},
         "starting_time": {"nanoseconds_since_epoch": int(start)}, "message_count": int(count),
         "topics_with_message_count": [
             {"topic_metadata": {"name": c.topic, "type": c.msgtype,
-                                "serialization_format": c.ext.serialization_format,
-                                "offered_qos_profiles": dump_qos_v9(c.ext.offered_qos_profiles),
+                                "serialization_format": ext.serialization_format,
+                                "offered_qos_profiles": dump_qos_v9(ext.offered_qos_profiles),
                                 "type_description_hash": c.digest},
-             "message_count": int(c.msgcount)} for c in conns],
+             "message_count": int(c.msgcount)} for c, ext in exts],
         "compression_format": "", "compression_mode": "",
         "files": [{"path": storage_file.name,
                    "starting_time": {"nanoseconds_since_epoch": int(start)},

@@ -43,6 +43,10 @@ _PLY_DTYPE = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8
               "uint": "<u4", "uint32": "<u4"}
 
 
+def _names(dt: np.dtype) -> tuple[str, ...]:
+    return dt.names or ()
+
+
 def _meta(cloud: PointCloud) -> dict[str, str]:
     return {"frame": cloud.frame, "design_name": cloud.design_name,
             "design_hash": cloud.design_hash, "calibration_id": cloud.calibration_id,
@@ -106,7 +110,7 @@ def write_ply(path: str | Path, cloud: PointCloud, *, binary: bool = True,
     head = ["ply", f"format {fmt} 1.0", "comment nodlidar point cloud"]
     head += [f"comment nodlidar {k}={v}" for k, v in _meta(cloud).items()]
     head.append(f"element vertex {len(a)}")
-    head += [f"property {_PLY_TYPE[a.dtype[f].str]} {f}" for f in a.dtype.names]
+    head += [f"property {_PLY_TYPE[a.dtype[f].str]} {f}" for f in _names(a.dtype)]
     head.append("end_header")
     p = Path(path)
     with p.open("wb") as fh:
@@ -122,7 +126,7 @@ def _write_ascii_rows(fh, a: np.ndarray) -> None:
     # shortest repr-exact digits (9 for float32, 17 for float64): ASCII round trips bit
     # for bit
     fmts = [("%.9g" if a.dtype[f].itemsize == 4 else "%.17g") if a.dtype[f].kind == "f" else "%d"
-            for f in a.dtype.names]
+            for f in _names(a.dtype)]
     if len(a):
         np.savetxt(fh, a, fmt=fmts, delimiter=" ")
 
@@ -149,7 +153,9 @@ def read_ply(path: str | Path) -> PointCloud:
         if magic.strip() != b"ply":
             raise DesignFileError(f"{p}: not a PLY file")
         head = _read_header(fh, magic, b"end_header")
-        fmt, meta, fields, n, in_vertex = None, {}, [], 0, False
+        fmt, n, in_vertex = None, 0, False
+        meta: dict[str, str] = {}
+        fields: list[tuple[str, str]] = []
         for line in head[1:]:
             w = line.split()
             if not w:
@@ -187,9 +193,10 @@ def _read_ascii_rows(fh, dt: np.dtype, n: int, p: Path) -> np.ndarray:
     if n == 0:
         return a
     rows = np.loadtxt(fh, dtype=float, ndmin=2, max_rows=n)
-    if rows.shape != (n, len(dt.names)):
-        raise DesignFileError(f"{p}: expected {n} rows of {len(dt.names)} values, got {rows.shape}")
-    for i, f in enumerate(dt.names):
+    names = _names(dt)
+    if rows.shape != (n, len(names)):
+        raise DesignFileError(f"{p}: expected {n} rows of {len(names)} values, got {rows.shape}")
+    for i, f in enumerate(names):
         a[f] = rows[:, i]
     return a
 
@@ -199,7 +206,7 @@ def write_pcd(path: str | Path, cloud: PointCloud, *, binary: bool = True,
               xyz_type: str = "float32") -> Path:
     """Write ``cloud`` as PCD v0.7 (``DATA binary`` or ``ascii``); returns the path."""
     a = _structured(cloud, _check_xyz_type(xyz_type))
-    names = a.dtype.names
+    names = _names(a.dtype)
     types = ["F" if a.dtype[f].kind == "f" else ("U" if a.dtype[f].kind == "u" else "I")
              for f in names]
     head = ["# .PCD v0.7 - Point Cloud Data file format"]

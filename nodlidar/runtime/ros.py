@@ -27,7 +27,8 @@ Transforms are ``parent -> child`` as ROS has them: the child's pose in the pare
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -101,8 +102,9 @@ def pointcloud2(ts, points: np.ndarray, frame_id: str, stamp_ns: int):
     """
     dt = points.dtype
     PointField = ts.types["sensor_msgs/msg/PointField"]
-    fields = [PointField(name=name, offset=int(dt.fields[name][1]),
-                         datatype=POINTFIELD_TYPES[dt[name].str], count=1) for name in dt.names]
+    layout: Mapping[str, Any] = dt.fields or {}
+    fields = [PointField(name=name, offset=int(layout[name][1]),
+                         datatype=POINTFIELD_TYPES[dt[name].str], count=1) for name in layout]
     data = np.frombuffer(np.ascontiguousarray(points).tobytes(), dtype=np.uint8)
     return ts.types["sensor_msgs/msg/PointCloud2"](
         header=ts.types["std_msgs/msg/Header"](stamp=stamp(ts, stamp_ns), frame_id=frame_id),
@@ -121,7 +123,7 @@ def pointcloud2_array(msg) -> np.ndarray:
 
 
 # -- transforms ------------------------------------------------------------------------------
-def nod_transform(nod_rad: float, pivot_m: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+def nod_transform(nod_rad: float, pivot_m: Sequence[float] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``nodlidar_base -> nodlidar_head``: (R (3, 3), t (3,) [m]) at pitch ``nod_rad``."""
     return rot_y(nod_rad), np.asarray(pivot_m, dtype=float)
 
@@ -146,7 +148,7 @@ def mirror_joint_angle(servo_rad, profile, hinge_z_m: float, lift_angle_rad: flo
     return -math.copysign(1.0, hinge_z_m) * lift_angle_rad * frac
 
 
-def static_transforms(pivot_m: Sequence[float]) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+def static_transforms(pivot_m: Sequence[float] | np.ndarray) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
     """The fixed frames: (parent, child, R, t) for ``/tf_static``."""
     return [(HEAD_FRAME, LASER_FRAME, np.eye(3), -np.asarray(pivot_m, dtype=float))]
 
