@@ -17,6 +17,7 @@ import cadquery as cq  # noqa: TID251 (the CAD tests read STEP files back)
 import numpy as np
 import pytest
 import trimesh
+from numpy.testing import assert_allclose
 
 from nodlidar.cad.params import MountParams, mount_params_from_dict
 from nodlidar.errors import ParameterError
@@ -599,6 +600,13 @@ def test_other_designs_export(tmp_path):
         design = solve(s)
         man = export_cad(design, tmp_path / s.lidar, preview=False)
         assert len(man.mirror_faces) == len(design.mirrors)
+        # printed pieces fit the bed; a part no lap cut can make fit is named, not dropped
+        printed = {pc["part"] for pc in man.print_pieces} | {r["part"] for r in man.print_refused}
+        assert printed == set(man.printable_parts())
+        bed = sorted([man.parameters["cad"]["bed_x_mm"], man.parameters["cad"]["bed_y_mm"]])
+        for pc in man.print_pieces:
+            assert all(a <= b + 1e-6 for a, b in
+                       zip(sorted(pc["print_size_mm"][:2]), bed, strict=True)), pc["name"]
         solids = _imported_solids(man.file("assembly_deployed.step"))
         for m in design.mirrors:
             pose = man.mirror_faces[m.name]["deployed"]
@@ -755,3 +763,117 @@ def test_cli_end_stop_in_the_beam_band_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "cad.end_stop_height_mm" in err and "14" in err and "12" in err
     assert not (tmp_path / "o").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# printable pieces (issue 17, item 4)
+
+
+def _piece_meshes(manifest):
+    """Each print STL (print orientation) and the same mesh moved back to the assembly."""
+    out = {}
+    for pc in manifest.print_pieces:
+        mesh = trimesh.load(manifest.file(pc["files"][1]))
+        asm = mesh.copy()
+        asm.apply_transform(np.linalg.inv(np.array(pc["to_print"])))
+        out[pc["name"]] = (pc, mesh, asm)
+    return out
+
+
+def test_print_pieces_fit_the_bed_and_are_closed(paper_export):
+    manifest, _ = paper_export
+    cad = manifest.parameters["cad"]
+    bx, by = cad["bed_x_mm"], cad["bed_y_mm"]
+    pieces = _piece_meshes(manifest)
+    # every printable part is printed, the 276 x 305 mm base in pieces
+    assert {pc["part"] for pc, _, _ in pieces.values()} == set(manifest.printable_parts())
+    assert sum(pc["part"] == "base" for pc, _, _ in pieces.values()) >= 2
+    for name, (_, mesh, _) in pieces.items():
+        assert mesh.is_watertight and mesh.is_volume, name
+        lo, hi = mesh.bounds
+        # on the bed at the corner; the STL's chordal deflection is the only slack
+        assert_allclose(lo, 0, atol=2 * cad["stl_tolerance_mm"])
+        w, d = hi[:2] - lo[:2]
+        assert (w <= bx and d <= by) or (w <= by and d <= bx), (name, w, d)
+
+
+def test_print_pieces_rest_on_their_largest_flat_face(paper_export):
+    # Independent of the exporter's choice (OCCT faces): from the STL alone, group the
+    # triangles into flat facets, keep those the piece can rest on (all vertices on one
+    # side of the facet's plane) and check the largest one faces down at z = 0.
+    manifest, _ = paper_export
+    tol = manifest.parameters["cad"]["stl_tolerance_mm"]
+    for name, (_, mesh, _) in _piece_meshes(manifest).items():
+        best = None
+        for facet, n, area in zip(mesh.facets, mesh.facets_normal, mesh.facets_area, strict=True):
+            p0 = mesh.vertices[mesh.faces[facet[0]][0]]
+            if np.max((mesh.vertices - p0) @ n) <= 2 * tol + 1e-6 and (best is None or area > best[0]):
+                best = (area, n, p0)
+        assert best is not None, name
+        area, n, p0 = best
+        assert_allclose(n, [0, 0, -1], atol=1e-6, err_msg=name)
+        assert abs(p0[2]) < 2 * tol, name
+
+
+def test_split_pieces_rebuild_the_part_with_lap_joints(paper_export):
+    manifest, _ = paper_export
+    base = next(p for p in manifest.parts if p["name"] == "base")
+    pieces = [pc for pc in manifest.print_pieces if pc["part"] == "base"]
+    # STEP volumes (exact B-rep): the pieces are the base less the joint holes (so they
+    # do not overlap either: an overlap would add volume)
+    vol = sum(_imported_solids(manifest.file(pc["files"][0]))[0].Volume() for pc in pieces)
+    joints = {json.dumps(j["holes_mm"]): j for pc in pieces for j in pc["joints"]}.values()
+    holes = sum(np.pi * h[3] ** 2 / 4 * j["plate_mm"] for j in joints for h in j["holes_mm"])
+    assert joints and all(j["dowels"] >= 1 and j["screws"] >= 1 for j in joints)
+    assert 0 < base["volume_mm3"] - vol <= holes + 1e-3
+    # every joint joins two or more pieces; every piece is in a joint
+    assert all(len(j["pieces"]) >= 2 for j in joints)
+    assert all(pc["joints"] for pc in pieces)
+    # the STEP product of every piece is named after it
+    for pc in manifest.print_pieces:
+        text = manifest.file(pc["files"][0]).read_text()
+        assert f"PRODUCT('{pc['name']}'" in text
+
+
+def test_assembled_print_pieces_clear_every_beam(paper_design, meshes, paper_export):
+    # the printed pieces, moved back from their print orientation, in place of the parts
+    manifest, _ = paper_export
+    m = {n: mesh for n, mesh in meshes["deployed"].items()
+         if n not in manifest.printable_parts()}
+    for name, (_, _, asm) in _piece_meshes(manifest).items():
+        m[name] = asm
+    n = _check_beams_deployed(paper_design, m, manifest.parameters["cad"]["beam_band_mm"])
+    assert n > 4 * paper_design.lidar.n_steps
+
+
+def test_bill_of_materials(paper_export, paper_design):
+    manifest, _ = paper_export
+    bom = {r["item"]: r for r in manifest.bom}
+    # glass sizes from the exported mirror faces (corner 0 -> 1 is the length, 1 -> 2 the
+    # height), not from the BOM code's own source
+    for name, faces in manifest.mirror_faces.items():
+        c = np.array(faces["deployed"]["corners_mm"])
+        length, height = np.linalg.norm(c[1] - c[0]), np.linalg.norm(c[2] - c[1])
+        assert f"{length:.1f} x {height:.1f} x" in bom[f"glass {name}"]["spec"], bom[f"glass {name}"]
+    assert bom["lift servo"]["qty"] == len({m.side for m in paper_design.mirrors})
+    joints = {json.dumps(j["holes_mm"]): j for pc in manifest.print_pieces for j in pc["joints"]}
+    assert bom["joint screw"]["qty"] == sum(j["screws"] for j in joints.values())
+    assert bom["dowel pin"]["qty"] == sum(j["dowels"] for j in joints.values())
+    assert "glass L1" in manifest.file("bom.md").read_text()
+
+
+def test_a_part_without_a_plate_to_cut_is_refused(paper_design):
+    # the carrier (235 x 31 mm; on a 150 mm square bed not even diagonally): it has no
+    # flat plate for a lap joint
+    from dataclasses import replace
+
+    from nodlidar.cad.mounts import build_mounts
+    from nodlidar.cad.params import mount_params_from_spec
+    from nodlidar.cad.printable import print_pieces
+
+    params = mount_params_from_spec(paper_design.spec)
+    assert (params.bed_x_mm, params.bed_y_mm) == (250.0, 210.0)  # the issue's default
+    model = build_mounts(paper_design, params)
+    carrier_only = replace(model, parts=(model.part("carrier_L"),))
+    with pytest.raises(ParameterError, match="carrier_L .* no flat plate"):
+        print_pieces(carrier_only, replace(params, bed_x_mm=150.0, bed_y_mm=150.0))

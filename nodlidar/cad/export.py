@@ -4,6 +4,9 @@
 
     assembly_deployed.step, assembly_lifted.step   named, coloured assemblies (mm)
     parts/<part>.step, parts/<part>.stl            each printable part (head frame, deployed)
+    print/<piece>.step, print/<piece>.stl          the parts split to fit the printer bed,
+                                                    each in its print orientation
+    bom.md                                          bill of materials and the print list
     meshes/<state>/<part>.stl                       every part in each state (validation, preview)
     preview.png                                     both states, rendered from the STL triangles
     manifest.json                                   parameters, parts, mirror face poses, files
@@ -50,6 +53,9 @@ class Manifest:
     hinge_axes: dict[str, dict[str, Any]]
     parameters: dict[str, Any]
     files: list[str] = field(default_factory=list)
+    print_pieces: list[dict[str, Any]] = field(default_factory=list)
+    print_refused: list[dict[str, str]] = field(default_factory=list)
+    bom: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def path(self) -> Path:
@@ -73,6 +79,10 @@ class Manifest:
             "hinge_axes": self.hinge_axes,
             "mirror_faces": self.mirror_faces,
             "files": self.files,
+            "print": {"bed_mm": [self.parameters.get("cad", {}).get("bed_x_mm"),
+                                 self.parameters.get("cad", {}).get("bed_y_mm")],
+                      "pieces": self.print_pieces, "refused": self.print_refused},
+            "bom": self.bom,
         }
 
     @classmethod
@@ -81,7 +91,9 @@ class Manifest:
         d = json.loads((folder / MANIFEST_NAME).read_text())
         return cls(folder=folder, design_name=d["design"], states=tuple(d["states"]),
                    parts=d["parts"], mirror_faces=d["mirror_faces"],
-                   hinge_axes=d["hinge_axes"], parameters=d["parameters"], files=d["files"])
+                   hinge_axes=d["hinge_axes"], parameters=d["parameters"], files=d["files"],
+                   print_pieces=d.get("print", {}).get("pieces", []), bom=d.get("bom", []),
+                   print_refused=d.get("print", {}).get("refused", []))
 
 
 def _jsonable(x: Any) -> Any:
@@ -149,6 +161,22 @@ def _render_preview(meshes: dict[str, dict[str, Any]], colors: dict[str, tuple],
     fig.savefig(path)
 
 
+def _bom_markdown(name: str, bom: list[dict[str, Any]], pieces: list[dict[str, Any]],
+                  P: MountParams, refused: list[dict[str, str]]) -> str:
+    """The bill of materials and the print list as Markdown (``bom.md``)."""
+    lines = [f"# {name}: bill of materials", "", "| item | spec | qty | note |", "|---|---|---|---|"]
+    lines += [f"| {r['item']} | {r['spec']} | {r['qty']} | {r['note']} |" for r in bom]
+    lines += ["", f"## Printed pieces (bed {P.bed_x_mm:g} x {P.bed_y_mm:g} mm, largest flat face "
+              "down)", "", "| piece | from part | size on the bed [mm] | joints |", "|---|---|---|---|"]
+    for pc in pieces:
+        sz = " x ".join(f"{x:.1f}" for x in pc["print_size_mm"])
+        joints = "; ".join(f"half lap with {', '.join(n for n in j['pieces'] if n != pc['name'])}"
+                           for j in pc["joints"]) or "-"
+        lines.append(f"| {pc['name']} | {pc['part']} | {sz} | {joints} |")
+    lines += [f"\nNot printable on this bed: {r['part']}: {r['reason']}" for r in refused]
+    return "\n".join(lines) + "\n"
+
+
 def export_cad(design: Any, out_dir: str | Path = "cad_out", *, state: str = "both",
                params: MountParams | None = None, preview: bool = True,
                progress: Progress | None = None) -> Manifest:
@@ -191,7 +219,7 @@ def export_cad(design: Any, out_dir: str | Path = "cad_out", *, state: str = "bo
     (folder / "parts").mkdir(parents=True, exist_ok=True)
     tol, atol = P.stl_tolerance_mm, P.stl_angular_tolerance_rad
     parts_info: list[dict[str, Any]] = []
-    n_steps = len(model.parts) + 2 * len(states) + 2
+    n_steps = len(model.parts) + 2 * len(states) + 3
     done = 0
 
     def tick(stage: str) -> None:
@@ -209,7 +237,8 @@ def export_cad(design: Any, out_dir: str | Path = "cad_out", *, state: str = "bo
         }
         if p.kind == "printable":
             step, stl = f"parts/{p.name}.step", f"parts/{p.name}.stl"
-            cq.exporters.export(p.shape, str(folder / step))
+            # one STEP product, named after the part (a plain export names it after OCCT)
+            cq.Assembly(p.shape, name=p.name).export(str(folder / step), mode="fused")
             cq.exporters.export(p.shape, str(folder / stl), tolerance=tol, angularTolerance=atol)
             info["files"] = [step, stl]
             files += [step, stl]
@@ -233,6 +262,26 @@ def export_cad(design: Any, out_dir: str | Path = "cad_out", *, state: str = "bo
                 meshes[st][name] = trimesh.load(str(folder / rel), force="mesh")
         tick(f"meshes {st}")
 
+    # printable pieces: split to fit the bed, each in its print orientation, STEP products
+    # named after the pieces; and the bill of materials
+    from .printable import bill_of_materials, print_pieces
+
+    refused: list[dict[str, str]] = []   # parts no cut makes fit: said in the manifest
+    pieces = print_pieces(model, P, refused=refused)
+    (folder / "print").mkdir(exist_ok=True)
+    pieces_info = []
+    for pc in pieces:
+        step, stl = f"print/{pc.name}.step", f"print/{pc.name}.stl"
+        cq.Assembly(pc.printed, name=pc.name).export(str(folder / step), mode="fused")
+        cq.exporters.export(pc.printed, str(folder / stl), tolerance=tol, angularTolerance=atol)
+        files += [step, stl]
+        pieces_info.append({**pc.to_dict(), "files": [step, stl],
+                            "volume_mm3": float(pc.printed.Volume())})
+    bom = bill_of_materials(design, P, pieces)
+    (folder / "bom.md").write_text(_bom_markdown(design.spec.name, bom, pieces_info, P, refused))
+    files.append("bom.md")
+    tick("print pieces")
+
     if preview:
         colors = {p.name: p.color for p in model.parts}
         _render_preview(meshes, colors, folder / "preview.png", design.spec.name)
@@ -246,7 +295,8 @@ def export_cad(design: Any, out_dir: str | Path = "cad_out", *, state: str = "bo
         mirror_faces=poses, hinge_axes={s: a.to_dict() for s, a in model.axes.items()},
         parameters={"design": _jsonable(design.spec.to_dict()), "cad": P.to_dict(),
                     "derived_mm": _jsonable(model.extras)},
-        files=[*files, MANIFEST_NAME],
+        files=[*files, MANIFEST_NAME], print_pieces=pieces_info, bom=bom,
+        print_refused=refused,
     )
     manifest.path.write_text(json.dumps(_jsonable(manifest.to_dict()), indent=2))
     tick("manifest")

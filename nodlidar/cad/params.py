@@ -93,6 +93,15 @@ class MountParams:
         STL linear deflection.
     stl_angular_tolerance_rad : float
         STL angular deflection [rad].
+    bed_x_mm, bed_y_mm : float
+        The printer bed; printable parts larger than it (in any rotation about the
+        vertical) are split into pieces that fit (default 250 x 210 mm).
+    lap_mm : float
+        Overlap of the half-lap joint at each split.
+    joint_screw : str
+        Screws through each half-lap joint.
+    dowel_mm, dowel_fit_mm : float
+        Alignment dowels in each half-lap joint and the extra diameter of their holes.
     """
 
     wall_mm: float = 3.0
@@ -124,6 +133,12 @@ class MountParams:
     beam_band_mm: float = 3.0
     stl_tolerance_mm: float = 0.02
     stl_angular_tolerance_rad: float = 0.1
+    bed_x_mm: float = 250.0
+    bed_y_mm: float = 210.0
+    lap_mm: float = 20.0
+    joint_screw: str = "M3"
+    dowel_mm: float = 3.0
+    dowel_fit_mm: float = 0.1
 
     def __post_init__(self) -> None:
         for f in fields(self):

@@ -60,4 +60,14 @@ def run(args: argparse.Namespace) -> int:
     for part in manifest.parts:
         files = ", ".join(part.get("files", [])) or "(reference, in the assemblies)"
         print(f"  {part['name']:<12} {part['kind']:<10} {part['volume_mm3'] / 1000:8.1f} cm3  {files}")
+    bed = manifest.parameters["cad"]
+    print(f"printed pieces (bed {bed['bed_x_mm']:g} x {bed['bed_y_mm']:g} mm, largest flat face down):")
+    for pc in manifest.print_pieces:
+        size = " x ".join(f"{x:.0f}" for x in pc["print_size_mm"])
+        print(f"  {pc['name']:<12} from {pc['part']:<10} {size:>16} mm  {pc['files'][1]}")
+    for r in manifest.print_refused:
+        print(f"  not printable on this bed: {r['part']}: {r['reason']}")
+    print("bill of materials:")
+    for r in manifest.bom:
+        print(f"  {r['qty']:>3} x {r['item']:<12} {r['spec']}  ({r['note']})")
     return 0
