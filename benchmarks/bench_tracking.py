@@ -9,7 +9,13 @@ evaluation as accumulated scans grow.
    k = 1, 5, 10, 20 scans, as a ratio to k = 1 measured in the same run. The Rényi pair list
    is built once per refinement (also timed, as "renyi setup").
 
-Run: ``.venv/bin/python benchmarks/bench_tracking.py``.
+3. Map merge (integrating one scan's carved rays) against the size of what was explored
+   before: the full :class:`VoxelMap` (re-sorts the whole map every scan) and the online
+   segmenter's :class:`WindowVoxelMap` (the last 60 scans; O(new keys)), with 30 k to 3 M
+   voxels already seen elsewhere.
+
+Run: ``.venv/bin/python benchmarks/bench_tracking.py [--scans N]`` (default 60; the issue's
+steady state: 600, the 40-scan window full).
 """
 
 from __future__ import annotations
@@ -49,12 +55,39 @@ def time_entropies(P, T, vel) -> tuple[float, float, float]:
     return tv, tr, ts
 
 
+def time_merge(scan) -> None:
+    """Section 3 of the module docstring."""
+    from nodlidar.tracking.voxels import VoxelGrid, VoxelMap, WindowVoxelMap, key_from_index
+
+    rng = np.random.default_rng(0)
+    print(f"{'explored voxels':>15} {'full map merge':>15} {'window map merge':>17}")
+    for n in (30_000, 300_000, 3_000_000):
+        # voxels seen before, far from this scan (an explored building), then this scan
+        old = np.unique(key_from_index(rng.integers(200, 1200, (n, 3))))
+        full, win = VoxelMap(VoxelGrid(0.1)), WindowVoxelMap(VoxelGrid(0.1), window_scans=60)
+        full.free.keys = old
+        full.free.count = np.ones(len(old), np.int64)
+        full.free.first = np.zeros(len(old), np.int64)
+        full.free.last = np.zeros(len(old), np.int64)
+        for k in range(60):
+            win.integrate(k, scan.points[:0], scan.ray_start + [30.0 + k, 0, 0], scan.ray_dir,
+                          scan.range_m, scan.ray_offset)
+        args = (scan.points[:0], scan.ray_start, scan.ray_dir, scan.range_m, scan.ray_offset)
+        tf = per_call(lambda m=full, a=args: m.integrate(100, *a), 0.5)
+        tw = per_call(lambda m=win, a=args: m.integrate(100, *a), 0.5)
+        print(f"{len(old):15d} {tf * 1e3:13.1f}ms {tw * 1e3:15.1f}ms")
+
+
 def main() -> None:
+    import sys
+
+    n_scans = int(sys.argv[sys.argv.index("--scans") + 1]) if "--scans" in sys.argv else 60
     design = solve(load_design(ROOT / "design" / "urg04lx-paper.toml"))
     period = design.lidar.scan_period_s
-    scans = simulate_scans(design, 60, mirrors_deployed=True, seed=0)
+    scans = simulate_scans(design, n_scans, mirrors_deployed=True, seed=0)
+    time_merge(scans[10])
     for ent in ("renyi", "voxel"):
-        seg = OnlineSegmenter(SegmentConfig(), design.lidar.range_sigma_m)
+        seg = OnlineSegmenter(SegmentConfig(), design.lidar.range_sigma_m)  # windowed map
         trk = Tracker(TrackerConfig(entropy=ent))
         dts = []
         for s in scans:
@@ -62,7 +95,9 @@ def main() -> None:
             trk.update(seg.update(s))
             dts.append(time.perf_counter() - t0)
         dts = np.array(dts)
-        print(f"update per scan ({ent:5s}): median {np.median(dts) * 1e3:6.1f} ms "
+        if len(dts) > 60:  # steady state: the 40-scan window full
+            dts = dts[60:]
+        print(f"update per scan ({ent:5s}, {len(dts)} scans): median {np.median(dts) * 1e3:6.1f} ms "
               f"= {np.median(dts) / period:6.1%} of the {period * 1e3:.0f} ms period; "
               f"max {dts.max() * 1e3:6.1f} ms = {dts.max() / period:6.1%}")
 

@@ -110,8 +110,9 @@ def run_online(design, scene, n_scans: int, *, mirrors_deployed: bool = True, se
         changed = trk.update(s)
         res.update_s.append(time.perf_counter() - t0)
         res.scan_t_s.append(s.t_mid_s)
+        ended = {st.track_id for st in changed if not st.alive}
         for st in changed:
-            if not st.alive:
+            if not st.alive or st.track_id in ended:
                 continue
             tr = trk.tracks[st.track_id]
             ids, cnt = (np.unique(tr.truth[-1], return_counts=True) if tr.truth[-1] is not None

@@ -1,20 +1,38 @@
-"""Tracks of moving objects: ids, state (position, v, heading), covariance, birth and death.
+"""Multi-object tracker: a constant-velocity Kalman filter per track, gating, global
+nearest-neighbour assignment, birth, confirmation and deletion.
 
-Each scan's dynamic clusters (:class:`~nodlidar.tracking.segment.Segmented`) are associated to
-tracks by the nearest predicted ground-plane position within ``gate_m`` (greedy, closest pair
-first). A cluster no track takes starts a *tentative* track; it is *confirmed* once seen in
-``confirm_scans`` scans (>= 2: one scan of inconsistent points can be noise). A track unseen
-for more than ``max_missed`` scans ends. The default ``max_missed = 12`` outlasts the nod's
-blind interval (the head sweeps past an object's height band, ~8 scans on the paper's ramp).
+Each scan's dynamic clusters (:class:`~nodlidar.tracking.segment.Segmented`; a
+:class:`~nodlidar.tracking.simdata.ScanPoints` from the live path is segmented first by the
+tracker's own :class:`~nodlidar.tracking.segment.OnlineSegmenter`) are the measurements.
+Every track carries a constant-velocity state ``(x, vx, y, vy)`` filtered over time with
+Stone Soup's components (:class:`~stonesoup.models.transition.linear.ConstantVelocity` per
+axis, :class:`~stonesoup.predictor.kalman.KalmanPredictor`,
+:class:`~stonesoup.updater.kalman.KalmanUpdater`). Per scan:
 
-Motion: after two scans, the coarse centroid line (:func:`coarse_motion`), then the entropy
-refinement (:func:`refine_motion`) over the track's last ``window_scans`` scans, warm-started
-from the previous refinement (search half-width ``warm_search_m_s``, and for the voxel
-entropy a coarser grid, ``warm_voxel_grid``) once there is one; the Rényi sum uses at most
-``max_points`` points. Position is
-the centroid of the latest scan's points, and the covariance of (x, y, vx, vy) comes from the
-residuals of the centroid line fit (ordinary least squares, isotropic), with the velocity
-block replaced by the refinement's curvature covariance when that is available and tighter.
+1. **predict** every track to the cluster's mean beam time;
+2. **gate**: a cluster can go to a track only within ``gate_m`` of its predicted position
+   and within the chi-square gate ``gate_chi2`` of the position innovation;
+3. **assign** globally (GNN: :func:`scipy.optimize.linear_sum_assignment` on the squared
+   Mahalanobis distances, gated pairs forbidden) - the joint assignment with the least total
+   cost, not the greedy closest pair first, which swaps two objects that pass close by. A
+   cluster that other confirmed tracks' predictions also fall on (within ``share_m`` of its
+   points) is shared: each point goes to the nearest prediction (two people touching in the
+   top view in one scan);
+4. clusters left over within ``merge_m`` of a track's assigned cluster are pieces of it (an
+   object seen through two mirror windows can come apart in one scan) and join it;
+5. the rest start *tentative* tracks (leftovers within ``merge_m`` of each other: one
+   track), *confirmed* once seen in ``confirm_scans`` scans; of two tracks updated in the
+   same scan within ``coalesce_m`` of each other (one object followed twice) the younger ends;
+   a track unseen for more than ``max_missed`` scans ends (the default 25 outlasts the nod's
+   blind interval, ~8 scans on the paper's ramp, and one person walking behind another:
+   16 scans in ``design/scenes/track-crossing.toml``; the track coasts on its prediction).
+
+The measurement of a track in a scan is the ground-plane centroid of its points and, from
+the second scan on, the velocity from the entropy refinement (:func:`refine_motion`, eqs
+11-13) over the track's last ``window_scans`` scans, warm-started from the previous one
+(search half-width ``warm_search_m_s``, and for the voxel entropy a coarser grid,
+``warm_voxel_grid``); the Rényi sum uses at most ``max_points`` points. The reported state
+(position, speed, heading, covariance of ``(x, y, vx, vy)``) is the filter's.
 """
 
 from __future__ import annotations
@@ -42,13 +60,22 @@ class TrackerConfig:
     gate_chi2 : float
         Chi-square gate on the position innovation (2 dof; 13.8 = 99.9 %).
     merge_m : float
-        Clusters left over within this of a track's assigned cluster join it [m].
+        Clusters left over within this of a track's assigned cluster join it, and new
+        clusters within it of each other are one new object [m] (about an object's size:
+        the faces of a 0.4 m box seen through different windows are 0.35 m apart; below
+        the 0.42 m between two people side by side).
+    share_m : float
+        A cluster is shared with another confirmed track whose prediction lies within this
+        of its points [m].
+    coalesce_m : float
+        Of two tracks updated in one scan closer than this [m], the younger ends (below
+        the 0.42 m between two people side by side).
     confirm_scans, max_missed, window_scans : int
     entropy, sigma_m, voxel_m, max_points, warm_search_m_s, warm_voxel_grid
         The entropy refinement (:func:`refine_motion`).
     position_sigma_m : float
         Measurement noise of the centroid [m] (the visible part of an object changes with
-        the nod and the mirror window).
+        the nod and the mirror window: a 0.4 m box's visible centroid moves by ~0.2 m).
     velocity_sigma_m_s : float
         Least measurement noise of the entropy velocity [m/s] (the refinement's own curvature
         covariance is unscaled; this floors it).
@@ -59,14 +86,16 @@ class TrackerConfig:
 
     gate_m: float = 0.6
     gate_chi2: float = 13.8
-    merge_m: float = 0.3
+    merge_m: float = 0.38
+    share_m: float = 0.15
+    coalesce_m: float = 0.25
     confirm_scans: int = 2
     max_missed: int = 25
     window_scans: int = 40
     entropy: str = "renyi"
     sigma_m: float = 0.02
     voxel_m: float = 0.03
-    position_sigma_m: float = 0.05
+    position_sigma_m: float = 0.1
     velocity_sigma_m_s: float = 0.01
     accel_sigma_m_s2: float = 0.05
     max_points: int = 300
@@ -85,6 +114,8 @@ class TrackerConfig:
         require(self.gate_m > 0, "gate_m", self.gate_m, "> 0 m")
         require(self.gate_chi2 > 0, "gate_chi2", self.gate_chi2, "> 0")
         require(self.merge_m >= 0, "merge_m", self.merge_m, ">= 0 m")
+        require(self.coalesce_m >= 0, "coalesce_m", self.coalesce_m, ">= 0 m")
+        require(self.share_m >= 0, "share_m", self.share_m, ">= 0 m")
         require(self.window_scans >= 2, "window_scans", self.window_scans, ">= 2")
         for name in ("position_sigma_m", "velocity_sigma_m_s", "accel_sigma_m_s2"):
             require(getattr(self, name) > 0, name, getattr(self, name), "> 0")
@@ -339,7 +370,7 @@ class Tracker:
                     priors[a, b] = self._predict(self.tracks[ids[a]], times[b])
                 pa = np.asarray(priors[a, b].state_vector, float).ravel()[[0, 2]]
                 # the prediction lies on (or just in front of) the cluster's points
-                if float(np.min(np.linalg.norm(xy - pa, axis=1))) <= cfg.merge_m:
+                if float(np.min(np.linalg.norm(xy - pa, axis=1))) <= cfg.share_m:
                     others.append(a)
             if not others:
                 continue
@@ -389,15 +420,40 @@ class Tracker:
             st = self._state(tr)
             tr.history.append(st)
             changed.append(st)
+        # new clusters within merge_m of each other are pieces of one new object
+        groups: list[list[int]] = []
         for b in births:
+            for g in groups:
+                if min(float(np.hypot(*(cents[b] - cents[bb]))) for bb in g) <= cfg.merge_m:
+                    g.append(b)
+                    break
+            else:
+                groups.append([b])
+        for g in groups:
+            idx = np.concatenate([objs[b] for b in g])
+            c = scan.points[idx, :2].mean(axis=0)
+            t = float(scan.t_s[idx].mean())
             tr = _Track(self._next_id)
             self._next_id += 1
             self.tracks[tr.track_id] = tr
-            self._add(tr, scan, objs[b], cents[b], times[b])
-            tr.state = self._birth(cents[b], times[b])
+            self._add(tr, scan, idx, c, t)
+            tr.state = self._birth(c, t)
             st = self._state(tr)
             tr.history.append(st)
             changed.append(st)
+        # two tracks updated in this scan within merge_m of each other follow one object (a
+        # box's faces seen through different windows, born apart): the younger one ends
+        now = [tr for tr in self.tracks.values() if tr.last_scan == scan.scan]
+        for i, t1 in enumerate(now):
+            for t2 in now[i + 1:]:
+                if t1.track_id not in self.tracks or t2.track_id not in self.tracks:
+                    continue
+                if float(np.hypot(*(t1.x[:2] - t2.x[:2]))) <= cfg.coalesce_m:
+                    young = t2 if len(t2.scans) < len(t1.scans) or (
+                        len(t2.scans) == len(t1.scans) and t2.track_id > t1.track_id) else t1
+                    del self.tracks[young.track_id]
+                    self.ended.append(young)
+                    changed.append(self._state(young, alive=False))
         for tid in list(self.tracks):
             tr = self.tracks[tid]
             if scan.scan - tr.last_scan > cfg.max_missed:
