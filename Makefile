@@ -10,7 +10,16 @@ STAMP  := $(VENV)/.installed
 
 venv: $(STAMP)
 
+# Open3D (the independent PLY/PCD reader of the tests) loads libusb-1.0 at import; a fresh
+# Debian machine lacks it. Installed through the system's package manager when we may.
+SYSLIBS := libusb-1.0-0
+
 $(STAMP): pyproject.toml
+	@ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || { \
+	  command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ] && \
+	  { apt-get install -y -qq $(SYSLIBS) >/dev/null 2>&1 || \
+	    { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq $(SYSLIBS) >/dev/null 2>&1; }; } ; } || \
+	  echo "note: $(SYSLIBS) not installed; the Open3D reader tests will skip"
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --upgrade --quiet pip
 	$(PY) -m pip install --quiet -e '.[dev]'
