@@ -179,3 +179,18 @@ def test_window_map_answers_as_the_full_map_within_its_window():
     b = short.inconsistent(q, 11)
     assert not np.any(b & ~a) and b.sum() < a.sum()
     assert short.n_keys == sum(len(k) for k in win._keys[-3:])
+
+
+def test_batched_voxel_grid_equals_one_evaluation_per_velocity():
+    # the batched pass (one sort of an (m, n) key array) against eq. 12 evaluated velocity by
+    # velocity with np.unique over rows (voxel_entropy): same pixels, same counts -> equal to
+    # rounding of the float sums
+    from nodlidar.tracking.motion import _voxel_entropy_grid, compensate, voxel_entropy
+
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(800, 3)) * 0.2
+    T = rng.uniform(0, 4, 800)
+    W = rng.normal(size=(25, 2)) * 0.1
+    a = _voxel_entropy_grid(P[:, :2], T, W, 4.0, 0.03, 0.01)
+    b = [voxel_entropy(compensate(P, T, w, 4.0) + [0.01, 0.01, 0.0], 0.03) for w in W]
+    assert_allclose(a, b, rtol=1e-12)

@@ -71,8 +71,9 @@ class TrackerConfig:
         Of two tracks updated in one scan closer than this [m], the younger ends (below
         the 0.42 m between two people side by side).
     confirm_scans, max_missed, window_scans : int
-    entropy, sigma_m, voxel_m, max_points, warm_search_m_s, warm_voxel_grid
-        The entropy refinement (:func:`refine_motion`).
+    entropy, sigma_m, voxel_m, max_points, voxel_max_points, warm_search_m_s, warm_voxel_grid
+        The entropy refinement (:func:`refine_motion`); ``max_points`` (Rényi) and
+        ``voxel_max_points`` cap the points one refinement uses (bounded work per scan).
     position_sigma_m : float
         Measurement noise of the centroid [m] (the visible part of an object changes with
         the nod and the mirror window: a 0.4 m box's visible centroid moves by ~0.2 m).
@@ -99,6 +100,7 @@ class TrackerConfig:
     velocity_sigma_m_s: float = 0.01
     accel_sigma_m_s2: float = 0.05
     max_points: int = 300
+    voxel_max_points: int = 1200
     warm_search_m_s: float = 0.03
     # voxel entropy, warm start: grid-search levels (points per axis) over +-warm_search_m_s;
     # 9, 9, 9 instead of the cold search's 17, 9, 9: a third less update time; final
@@ -117,6 +119,8 @@ class TrackerConfig:
         require(self.coalesce_m >= 0, "coalesce_m", self.coalesce_m, ">= 0 m")
         require(self.share_m >= 0, "share_m", self.share_m, ">= 0 m")
         require(self.window_scans >= 2, "window_scans", self.window_scans, ">= 2")
+        require(self.max_points >= 3 and self.voxel_max_points >= 3, "max_points",
+                (self.max_points, self.voxel_max_points), ">= 3 points")
         for name in ("position_sigma_m", "velocity_sigma_m_s", "accel_sigma_m_s2"):
             require(getattr(self, name) > 0, name, getattr(self, name), "> 0")
         require(len(self.warm_voxel_grid) >= 1 and all(int(n) == n and n >= 3
@@ -309,6 +313,7 @@ class Tracker:
         tr.motion = refine_motion(P, Tp, tr.motion if warm else tr.coarse, entropy=cfg.entropy,
                                   sigma_m=cfg.sigma_m, voxel_m=cfg.voxel_m, n_scans=len(tr.scans),
                                   max_points=cfg.max_points,
+                                  voxel_max_points=cfg.voxel_max_points,
                                   search_m_s=cfg.warm_search_m_s if warm else 0.08,
                                   **({"voxel_grid": cfg.warm_voxel_grid} if warm else {}))
 
