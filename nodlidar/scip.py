@@ -193,9 +193,20 @@ def encode_value(value: int, n_chars: int) -> bytes:
 
 
 def decode_value(chars: bytes | str) -> int:
-    """Decode one 2/3/4-character group (any length 1..4) to an integer."""
+    """Decode one 2/3/4-character group (any length 1..4) to an integer.
+
+    Raises
+    ------
+    ProtocolError
+        Wrong length or a character outside ``'0'..'o'``.
+    """
     if isinstance(chars, str):
+        if not chars.isascii():
+            raise ProtocolError(f"scip value = {chars[:8]!r} is invalid; allowed: '0'..'o'")
         chars = chars.encode("ascii")
+    if not 1 <= len(chars) <= 4:
+        raise ProtocolError(f"scip value = {bytes(chars)[:8]!r} is invalid; allowed: 1 to 4 "
+                            "characters")
     return int(decode_values(chars, len(chars))[0])
 
 
