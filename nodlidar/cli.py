@@ -79,6 +79,8 @@ def _plain_help(p: argparse.ArgumentParser) -> None:
     for a in p._actions:
         if isinstance(a.help, str):
             a.help = plain(a.help)
+    for g in p._action_groups:
+        g.description = plain(g.description)
 
 
 def build_parser() -> argparse.ArgumentParser:
