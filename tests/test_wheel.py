@@ -96,3 +96,18 @@ def test_installed_wheel_runs_from_an_empty_directory(wheel, tmp_path):
     assert (empty / "x.ply").stat().st_size > info["points"] * 12
     # nothing but the output in the working directory
     assert sorted(p.name for p in empty.iterdir()) == ["x.ply"]
+
+
+def test_packaged_designs_and_scenes_by_name():
+    """The package's designs/scenes are the repository's design/ files (one copy), and a
+    shipped scene loads by its bare name (what works after a wheel install)."""
+    from nodlidar.paper import PAPER_DESIGN, design_resource
+    from nodlidar.sim.scene import Scene, load_scene
+
+    assert PAPER_DESIGN.read_bytes() == (ROOT / "design" / "urg04lx-paper.toml").read_bytes()
+    scenes = sorted((ROOT / "design" / "scenes").glob("*.toml"))
+    assert scenes
+    for path in scenes:
+        assert design_resource(f"scenes/{path.name}").read_bytes() == path.read_bytes()
+        by_name, by_path = load_scene(path.stem), Scene.from_toml(path)
+        assert repr(by_name) == repr(by_path), path.stem

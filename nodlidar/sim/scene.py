@@ -748,4 +748,12 @@ def load_scene(scene: Scene | str | Path | None) -> Scene:
         return builtin_scene(s)
     if s.endswith(".toml") or Path(s).exists():
         return Scene.from_toml(s)
+    if s and "/" not in s and "\\" not in s:
+        # a scene shipped with the package by name (design/scenes/<name>.toml, package data:
+        # found after a wheel install too)
+        from ..paper import design_resource
+
+        packaged = design_resource(f"scenes/{s}.toml")
+        if packaged.is_file():
+            return Scene.from_toml(packaged)
     return builtin_scene(s)
