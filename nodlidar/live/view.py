@@ -171,11 +171,12 @@ class _TrackWorker(threading.Thread):
         self.q: queue.Queue = queue.Queue()
         self.ids: set[int] = set()
         self.error: str | None = None
+        self.stopping = threading.Event()
 
     def run(self) -> None:
         while (sp := self.q.get()) is not None:
-            if self.error is not None:
-                continue
+            if self.error is not None or self.stopping.is_set():
+                continue   # drain: after the view stopped, a backlog is not worth tracking
             try:
                 states = self.trk.update(self.seg.update(sp))
                 self.ids.update(int(s.track_id) for s in states)
@@ -280,8 +281,11 @@ def run_view(session, sink: FoxgloveSink, *, duration_s: float | None = None,
         pass
     finally:
         if worker is not None:
+            # finish the update in progress, skip the backlog, and wait: a thread still in
+            # native code when the interpreter exits aborts the process
+            worker.stopping.set()
             worker.q.put(None)
-            worker.join(timeout=10.0)
+            worker.join()
             stats.tracks = len(worker.ids)
             if worker.error is not None:
                 stats.tracking = f"stopped ({worker.error})"
