@@ -41,6 +41,9 @@ def register(sub) -> None:
                    metavar="S", help="stop after S wall seconds (default: run until Ctrl-C)")
     p.add_argument("--max-points", type=bounded_int(1, 50_000_000), default=200_000, metavar="N",
                    help="points in the published cloud: the newest N (default 200000)")
+    p.add_argument("--cloud-period", type=bounded_float(0.05, 3600, unit="s"), default=0.5,
+                   metavar="S", help="publish the cloud at most every S wall seconds (default 0.5; "
+                                     "each message holds the whole window)")
     p.add_argument("--no-tracks", action="store_true", help="do not run the tracker")
     p.add_argument("--sensor-height", type=bounded_float(0, 100, unit="m"), default=0.4,
                    metavar="M", help="sensor base above the floor [m] (tracks' frame; default 0.4)")
@@ -71,6 +74,7 @@ def run(args) -> int:
         status(f"open {url} in Foxglove (Open connection -> Foxglove WebSocket); Ctrl-C stops")
         with session_from_args(args) as s:
             st = run_view(s, sink, duration_s=args.duration, max_points=args.max_points,
+                          cloud_period_s=args.cloud_period,
                           track=not args.no_tracks, sensor_height_m=args.sensor_height,
                           lift=args.lift, log=status, stop=stop)
     finally:
@@ -78,6 +82,7 @@ def run(args) -> int:
         sink.close()
     summary = {"url": url, "scans": st.scans, "points": st.points, "cloud_points": st.cloud_points,
                "messages": st.messages, "tracks": st.tracks, "tracking": st.tracking,
+               "tracking_skipped_scans": st.tracks_skipped,
                "mcap": args.mcap, "dropped": {k: v for k, v in st.stats.items() if v}}
     if args.json:
         print(json.dumps(summary), flush=True)

@@ -35,6 +35,9 @@ __all__ = ["TOPICS", "FoxgloveSink", "CloudWindow", "ViewStats", "run_view", "bu
 
 _log = logging.getLogger(__name__)   # debug detail (nodlidar -v)
 
+#: Scans the tracker thread may lag behind before scans are skipped for tracking.
+TRACK_BACKLOG = 50
+
 TOPICS = {"cloud": "/nodlidar/cloud", "mirrors": "/nodlidar/mirrors", "tracks": "/nodlidar/tracks",
           "tf": "/tf"}
 
@@ -142,6 +145,7 @@ class ViewStats:
     cloud_points: int = 0
     messages: dict[str, int] = field(default_factory=dict)
     tracks: int = 0
+    tracks_skipped: int = 0
     tracking: str = "off"
     stats: dict[str, int] = field(default_factory=dict)
 
@@ -263,7 +267,12 @@ def run_view(session, sink: FoxgloveSink, *, duration_s: float | None = None,
         need = assembler.need_since_s()
         if worker is not None and worker.error is None:
             for sp in live_scans.on_scan(scan, samplers):
-                worker.q.put(sp)
+                if worker.q.qsize() < TRACK_BACKLOG:
+                    worker.q.put(sp)
+                else:   # the tracker is slower than the sensor: memory stays bounded
+                    if not stats.tracks_skipped:
+                        log(f"tracker behind by {TRACK_BACKLOG} scans: skipping scans")
+                    stats.tracks_skipped += 1
             if live_scans.pending:
                 need = min(need, first_beam(live_scans.pending[0]))
         for smp in samplers.values():   # memory stays flat however long the view runs
