@@ -83,7 +83,8 @@ def run(args) -> int:
     summary = {"url": url, "scans": st.scans, "points": st.points, "cloud_points": st.cloud_points,
                "messages": st.messages, "tracks": st.tracks, "tracking": st.tracking,
                "tracking_skipped_scans": st.tracks_skipped,
-               "mcap": args.mcap, "dropped": {k: v for k, v in st.stats.items() if v}}
+               "mcap": args.mcap, "dropped": {k: v for k, v in st.stats.items()
+                           if v and k in ("error_codes", "no_nod", "mirror_moving", "blocked")}}
     if args.json:
         print(json.dumps(summary), flush=True)
     else:
