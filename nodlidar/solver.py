@@ -216,6 +216,18 @@ class Design:
             out[m.steps - self.lidar.step_min] = m.target_bearing
         return out
 
+    @cached_property
+    def shadowed_steps(self) -> np.ndarray:
+        """Valid steps the design gives up (``placement.shadowed_steps``) that the exact trace
+        finds blocked: their reflection meets another mirror, so a one-reflection model
+        (the runtime's BeamModel) must not project them. ``(k,) int``, ascending."""
+        if not self.spec.placement.shadowed_steps:
+            return np.zeros(0, dtype=int)
+        from .verify import verify
+
+        v = verify(self)
+        return v.steps[v.bad & ~v.unexpected_blocked()]
+
     def patches(self, perturbations: dict[str, Perturbation] | None = None) -> list[MirrorPatch]:
         """Mirror patches, optionally perturbed (mirror name -> Perturbation)."""
         perturbations = perturbations or {}

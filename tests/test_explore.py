@@ -24,6 +24,7 @@ from nodlidar.spec import load_design
 from nodlidar.verify import verify
 
 ROOT = Path(__file__).resolve().parents[1]
+# the chained reading (one standoff to sweep); urg04lx-paper-chained.toml after the swap
 PAPER = ROOT / "design" / "urg04lx-paper.toml"
 
 

@@ -124,6 +124,7 @@ def test_exact_reading_blocks_only_the_declared_beams(exact):
     bad = v.steps[v.bad]
     # L2's tip shadows L1's first reflections (R2 likewise R1's), exactly the declared ones
     assert set(bad) == set(range(616, 626)) | set(range(143, 153))
+    assert_allclose(exact.shadowed_steps, sorted(bad))  # what the runtime must drop
     assert not v.unexpected_blocked().any()
     # 612..615 and 153..156 reach no glass and stay direct
     for s in (*range(612, 616), *range(153, 157)):
