@@ -453,3 +453,28 @@ def test_view_mirrors_calibrated_and_tracks_in_the_mcap(tmp_path):
         pytest.fail(f"the tracker could not be built: {summary['tracking']}")
     assert track_ids and track_frames == {"world"}
     assert len(track_ids) == summary["tracks"]
+
+
+@pytest.mark.slow
+def test_view_with_device_ports(capsys):
+    """The device path: the emulators served over TCP (real time, as hardware), given to
+    view with --port/--servo-port like every runtime command; points from the assembled
+    scans, the summary's counts consistent with the URL line."""
+    from nodlidar.cli import main
+    from nodlidar.paper import PAPER_DESIGN
+    from nodlidar.sim.sensor import SimulatedSensor
+    from nodlidar.solver import solve
+    from nodlidar.spec import load_design
+
+    design = solve(load_design(PAPER_DESIGN))
+    with SimulatedSensor(design, "room", transport="tcp", rate=1.0) as sim:
+        code = main(["-q", "view", "--port", sim.lidar_url, "--servo-port", sim.servo_url,
+                     "--ws-port", "0", "--duration", "4", "--no-tracks", "--json"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    first, summary = (json.loads(line) for line in out.out.splitlines())
+    assert summary["url"] == first["url"] and summary["scans"] >= 10
+    assert summary["points"] > 0 and summary["messages"]["cloud"] >= 1
+    # one transform per scan (none for a scan that came before the first nod sample) + the
+    # initial one
+    assert summary["scans"] - 3 <= summary["messages"]["tf"] - 1 <= summary["scans"]
