@@ -15,6 +15,7 @@ CLI prints it as ``nodlidar <command>: <message>``.
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import math
 import os
@@ -226,7 +227,8 @@ def check_value(value: Any, tp: Any, name: str, source: str | None = None) -> An
     ``tuple[X, ...]``: a list of any length (a single value is taken as one-element; the
     dataclass checks the length);
     ``tuple[X, Y, Z]``: a list of exactly that length. ``dict``/``list``: that container.
-    ``X | None``: None or X. Other annotations are passed through unchecked.
+    ``X | None``: None or X. A dataclass: a table checked by :func:`check_fields` and
+    built (so nested tables get the same checks). Other annotations pass unchecked.
     """
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
@@ -273,6 +275,11 @@ def check_value(value: Any, tp: Any, name: str, source: str | None = None) -> An
             return tuple(value)
         return tuple(check_value(x, a, f"{name}[{i}]", source)
                      for i, (x, a) in enumerate(zip(value, args, strict=True)))
+    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+        # a nested table ([[placement.mirrors]]): the same strict checks, field by field
+        if isinstance(value, tp):
+            return value
+        return tp(**check_fields(tp, value, name, source))
     if tp is dict or origin is dict:
         if not isinstance(value, Mapping):
             raise ParameterError(name, value, "a table" + _in(source))

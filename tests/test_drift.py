@@ -150,5 +150,7 @@ def test_drift_cli_table_and_errors(capsys):
     out = capsys.readouterr().out
     assert "R=3 m" in out and "R2" in out
     assert main(["drift", str(PAPER), "--ranges", "-1"]) == 2
-    assert "ranges_m" in capsys.readouterr().err
+    assert "--ranges" in capsys.readouterr().err  # the option typed, not ranges_m (issue 15)
+    assert main(["drift", str(PAPER), "--ranges", "1e308"]) == 2
+    assert "--ranges" in capsys.readouterr().err
     assert main(["drift", "nope.toml"]) == 2

@@ -418,3 +418,24 @@ def test_ctrl_c_with_dask_workers_is_one_line(tmp_path):
     lines = [ln for ln in err.replace("\r", "\n").splitlines() if ln.strip()]
     assert p.returncode == 130
     assert lines == ["nodlidar tolerance: interrupted"], err[-2000:]
+
+
+EXACT = Path(PAPER_DESIGN).with_name("urg04lx-paper-exact.toml")
+
+
+@pytest.mark.skipif(not EXACT.is_file(), reason="no per-mirror design file")
+@pytest.mark.parametrize("old, new, needle", [
+    ("standoff_m = 0.02", "standoff_m = true", "placement.mirrors[0].standoff_m = True"),
+    ("target_offset = 1\n", 'target_offset = "1"\n', "placement.mirrors[0].target_offset = '1'"),
+    ("anchor_step = 725", "anchr_step = 725",
+     "did you mean placement.mirrors[0].anchor_step?"),
+])
+def test_nested_tables_get_the_same_strict_checks(tmp_path, old, new, needle):
+    text = EXACT.read_text()
+    assert old in text
+    p = tmp_path / "x.toml"
+    p.write_text(text.replace(old, new, 1))
+    with pytest.raises(ParameterError) as e:
+        load_design(p)
+    assert needle in _one_line(e.value) and str(p) in str(e.value)
+    load_design(EXACT)  # the unedited file loads

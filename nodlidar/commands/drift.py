@@ -10,7 +10,8 @@ from __future__ import annotations
 import json
 import sys
 
-from ._args import bounded_float
+#: Largest arc radius [m]: far beyond any lidar's range, and refuses 1e308 (inf bearings).
+MAX_RANGE_M = 1000.0
 
 
 def register(sub) -> None:
@@ -18,9 +19,9 @@ def register(sub) -> None:
                        description=__doc__)
     p.add_argument("design", help="design TOML file, e.g. design/urg04lx-paper.toml")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    p.add_argument("--ranges", type=bounded_float(0, 100, lo_open=True, unit="m"), nargs="+",
-                   default=[0.4, 1.0, 2.0, 6.0], metavar="M",
-                   help="arc radii [m], 0 < R <= 100 (default: 0.4 1 2 6)")
+    p.add_argument("--ranges", type=float, nargs="+", default=[0.4, 1.0, 2.0, 6.0],
+                   metavar="M", help=f"arc radii [m], 0 < R <= {MAX_RANGE_M:g} "
+                                     "(default: 0.4 1 2 6)")
     p.set_defaults(func=run)
 
 
@@ -28,7 +29,11 @@ def run(args) -> int:
     from ..analysis.drift import bearing_drift
     from ..solver import solve
     from ..spec import load_design
+    from ..validation import check_number
 
+    # checked here, not by argparse, so that main() returns 2 (in-process callers)
+    for r in args.ranges:
+        check_number(r, "--ranges", lo=0, hi=MAX_RANGE_M, lo_open=True, unit="m")
     spec = load_design(args.design)
     design = solve(spec)
     result = bearing_drift(design, args.ranges)

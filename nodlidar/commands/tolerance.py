@@ -41,6 +41,9 @@ def run(args) -> int:
         raise ParameterError("--samples", args.samples, "an integer >= 1")
     if args.workers is not None and args.workers < 0:
         raise ParameterError("--workers", args.workers, "an integer >= 0")
+    if args.scheduler is not None and args.workers is not None:  # would be ignored
+        raise ParameterError("--workers", args.workers, "not with --scheduler (its workers "
+                                                        "run the chunks)")
     if args.scheduler is not None:
         from ..analysis.tolerance import _check_scheduler
 
