@@ -46,6 +46,8 @@ def record(args, bag: Path, cloud: Path) -> dict:
     exe = Path(sys.executable).with_name("nodlidar")
     cmd = [str(exe), "record", "--out", str(bag), "--seconds", str(args.seconds),
            "--sim-rate", str(args.sim_rate), "--cloud", str(cloud)]
+    if args.storage:
+        cmd += ["--storage", args.storage]
     t0 = time.monotonic()
     log = (bag.parent / "record.log").open("w")
     p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
@@ -190,6 +192,7 @@ def main() -> None:
     ap.add_argument("--rss-period", type=float, default=5.0, help="wall seconds between RSS reads")
     ap.add_argument("--chunk", type=int, default=2000, help="scans per replay chunk")
     ap.add_argument("--keep", action="store_true", help="keep the bag and cloud")
+    ap.add_argument("--storage", default=None, help="record --storage (mcap, sqlite3)")
     args = ap.parse_args()
     d = Path(args.dir)
     shutil.rmtree(d, ignore_errors=True)

@@ -83,7 +83,7 @@ PROFILE_ACCEL_UNIT_RAD_S2 = 214.577 * 2.0 * math.pi / 3600.0
 
 _TICK_S_PER_VEL_UNIT = RAD_S_PER_VELOCITY_UNIT / RAD_PER_TICK
 _TICK_S2_PER_ACC_UNIT = PROFILE_ACCEL_UNIT_RAD_S2 / RAD_PER_TICK
-_HISTORY = 20_000  # motion segments kept per servo for ground-truth queries
+_HISTORY = 4096  # motion segments kept per servo for ground-truth queries (~1 MB)
 _RAM_START = CONTROL_TABLE["torque_enable"].address  # items below live in EEPROM
 _CLEAR_KEY = b"\x44\x58\x4c\x22"  # "DXL\"": CLEAR's fixed parameters after the option
 MAX_TCP_CONNECTIONS = 8
@@ -544,7 +544,7 @@ class DxlEmulator:
             Bus ID or name (``"nod"``, ``"mirror_left"``, ``"mirror_right"``).
         t : float or array_like, optional
             Simulated time(s) [s]; default now. Past times are answered from the
-            motion history (the last 20000 commanded moves); future times assume no
+            motion history (the last 4096 commanded moves); future times assume no
             further commands.
 
         Returns
@@ -555,7 +555,15 @@ class DxlEmulator:
         s = self._servo(servo)
         with self._lock:
             tt = np.asarray(self.clock.now() if t is None else t, dtype=float)
-            segs = list(s.history)
+            # only the segments from the one in force at the earliest query on (recent
+            # queries - every simulated scan - cost a few segments, not the history)
+            t_min = float(np.min(tt)) if tt.size else math.inf
+            segs = []
+            for g in reversed(s.history):
+                segs.append(g)
+                if g.t0 <= t_min:
+                    break
+            segs.reverse()
         starts = [g.t0 for g in segs]
         out = np.empty(tt.shape, dtype=float)
         flat_t = tt.reshape(-1)
