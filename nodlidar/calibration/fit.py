@@ -516,9 +516,11 @@ _H_MIRROR = np.array([1e-6, 1e-6, 1e-7])
 
 
 def _robust_mirror(prob: _MirrorProblem, sig_r: np.ndarray, config: CalibrationConfig,
-                   x0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+                   x0: np.ndarray, warm: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Stage 2 (module docstring): the mirror's inliers and pose with the planes fixed.
 
+    ``warm``: ``x0`` is already a fit (a later round): skip the robust (soft-L1) pass.
     Returns ``(x, used (n,) bool, near_wall (n,) bool, nfev)``.
     """
     lo, hi = config.bounds
@@ -538,13 +540,14 @@ def _robust_mirror(prob: _MirrorProblem, sig_r: np.ndarray, config: CalibrationC
                                f"{int(config.min_points)} (is the wall in front of the mirror's "
                                "window, and nothing in between?)")
     nfev = 0
-    sub = prob.subset(near)
-    sol = least_squares(lambda v: sub.residuals(v) / sig[near], x, bounds=(lo, hi),
-                        method="trf", x_scale="jac", loss="soft_l1", f_scale=2.0,
-                        max_nfev=200)
-    x, nfev = sol.x, sol.nfev
+    if not warm:
+        sub = prob.subset(near)
+        sol = least_squares(lambda v: sub.residuals(v) / sig[near], x, bounds=(lo, hi),
+                            method="trf", x_scale="jac", loss="soft_l1", f_scale=2.0,
+                            max_nfev=200)
+        x, nfev = sol.x, sol.nfev
     used = near.copy()
-    for _ in range(6):
+    for _ in range(2):  # the joint fit re-gates and refits; this only starts it well
         new = near & (np.abs(prob.residuals(x)) <= config.gate_sigma * sig)
         if new.sum() < config.min_points:
             raise CalibrationError(f"mirror {name}: only {int(new.sum())} reflected points "
@@ -664,8 +667,24 @@ class _Joint:
         """Unweighted residuals of all rows: measured range - predicted range [m] (paper
         model: point-to-plane distance), then the known-distance rows [m]."""
         S, D, O, P = rays
-        N, C, dc = self._planes(theta)
         intr = self.intr(theta)
+        if P is None:
+            # per row, by capture: (S . n_k), (D . n_k) for all K normals at once, then pick
+            pl = [self.plane_of(theta, k) for k in range(self.K)]
+            Nk = np.stack([q[0] for q in pl])
+            ck = np.array([q[0] @ q[1] + q[2] for q in pl])  # n.c + dc: the plane offset
+            idx = np.arange(self.n_points)
+            sn = (S @ Nk.T)[idx, self.cap_rows]
+            dn = (D @ Nk.T)[idx, self.cap_rows]
+            dn = np.where(np.abs(dn) < 1e-3, 1e-3, dn)
+            r_hat = O + (ck[self.cap_rows] - sn) / dn
+            if intr is not None:
+                r_hat = (1.0 + intr[1]) * r_hat + intr[0]
+            e = self.r_meas - r_hat
+            if not self.known:
+                return e
+            return np.concatenate([e, [ck[k] - dist for k, dist, _ in self.known]])
+        N, C, dc = self._planes(theta)
         if P is not None:  # paper model: the direct rows as points too
             r = _true_range(self.r_meas[:self.nd], intr)
             pd = S if S is not None else np.concatenate(
@@ -714,25 +733,61 @@ class _Joint:
             w = w  # paper model: distance residuals, same noise scale
         self.w = np.concatenate([w, [1.0 / sd for _, _, sd in self.known]])
 
+    def _plane_columns(self, theta: np.ndarray, rays, J: np.ndarray) -> None:
+        """Analytic plane columns (unweighted) of the range residuals, into ``J``:
+        ``e = r - (1 + s) (O + (n.c + dc - S.n) / (D.n)) - b`` with ``n`` tilted by
+        ``(ta, tb)``."""
+        S, D, _, _ = rays
+        intr = self.intr(theta)
+        k1 = 1.0 + (intr[1] if intr is not None else 0.0)
+        for k in range(self.K):
+            sel = np.flatnonzero(self.cap_rows == k)
+            pl = self.planes[k]
+            ta, tb, dc = theta[3 * k:3 * k + 3]
+            u = pl.normal + ta * pl.tangents[0] + tb * pl.tangents[1]
+            nu = np.linalg.norm(u)
+            n = u / nu
+            Sk, Dk = S[sel], D[sel]
+            dn = Dk @ n
+            dn = np.where(np.abs(dn) < 1e-3, 1e-3, dn)
+            num = n @ pl.point + dc - Sk @ n
+            J[sel, 3 * k + 2] = -k1 / dn
+            for j in range(2):
+                dnj = (pl.tangents[j] - n * (n @ pl.tangents[j])) / nu   # d n / d t_j
+                dt = ((dnj @ pl.point - Sk @ dnj) * dn - num * (Dk @ dnj)) / dn**2
+                J[sel, 3 * k + j] = -k1 * dt
+            for i, (kk, _, _) in enumerate(self.known):
+                if kk == k:  # the prior row n . c + dc - D
+                    row = self.n_points + i
+                    J[row, 3 * k + 2] = 1.0
+                    for j in range(2):
+                        J[row, 3 * k + j] = pl.point @ ((pl.tangents[j] - n * (n @ pl.tangents[j]))
+                                                        / nu)
+
     def jac(self, theta: np.ndarray, rays=None) -> np.ndarray:
         """Weighted Jacobian by central differences: plane and intrinsic parameters reuse
         the rays (only the planes / the range model move); parameter j of every mirror is
         stepped at once (their rows do not overlap) and only its rays recomputed."""
         rays = self.rays(theta) if rays is None else rays
         J = np.zeros((len(self.w), self.n_params))
-        for col in list(range(3 * self.K)) + list(range(3 * self.K + 3 * self.M, self.n_params)):
+        cols = list(range(3 * self.K + 3 * self.M, self.n_params))
+        if rays[3] is None:
+            self._plane_columns(theta, rays, J)
+        else:
+            cols = list(range(3 * self.K)) + cols
+        for col in cols:
             h = 1e-7 if col < 3 * self.K else 1e-6
             e = np.zeros(self.n_params)
             e[col] = h
             J[:, col] = (self.residuals(theta + e, rays) - self.residuals(theta - e, rays)) / (2 * h)
+        base = self.residuals(theta, rays)
         for j in range(3):
+            # forward differences: each step rebuilds every mirror's patch (the costly part);
+            # with h = 1e-6 rad / 1e-7 m the truncation error is ~1e-6 relative
             h = _H_MIRROR[j]
-            diff = []
-            for s in (1.0, -1.0):
-                th = theta.copy()
-                th[3 * self.K + j:3 * self.K + 3 * self.M:3] += s * h
-                diff.append(self.residuals(th, self.rays(th)))
-            d = (diff[0] - diff[1]) / (2 * h)
+            th = theta.copy()
+            th[3 * self.K + j:3 * self.K + 3 * self.M:3] += h
+            d = (self.residuals(th, self.rays(th)) - base) / h
             for m in range(self.M):
                 sel = self.mir_rows == m
                 J[:self.n_points][sel, 3 * self.K + 3 * m + j] = d[:self.n_points][sel]
@@ -944,7 +999,8 @@ def calibrate(design, captures: list[WallCapture], *, model: str = "exact",
             prob, sig_r = _mirror_candidates(design, name, captures, fits, config, model,
                                              np.flatnonzero(hit == index[name]) + lidar.step_min)
             prob_t = prob if intr is None else prob.with_ranges(_true_range(prob.ranges, intr))
-            x, used, near, nfev = _robust_mirror(prob_t, sig_r, config, start[name].as_array())
+            x, used, near, nfev = _robust_mirror(prob_t, sig_r, config, start[name].as_array(),
+                                                 warm=rnd > 0)
             robust[name] = (prob, x, used, near, nfev, sig_r)
         fitted = {name: Perturbation.from_array(robust[name][1]) for name in names}
         last = rnd + 1 == int(config.rounds)

@@ -118,7 +118,7 @@ def run(args) -> int:
     if "calibrate" not in args.skip:
         steps.start("calibration against three simulated walls (paper Section IV)")
         cal = out / "calibration.toml"
-        command(["calibrate", "--design", design_arg, "--sim", "--perturb", "table1",
+        command(["calibrate", "--design", design_arg, "--sim", "--perturb", "table1", "--force",
                  "--out", str(cal), "--plot", str(out / "calibration.png")])
         steps.output("calibration", cal, echo=False)
         steps.output("calibration plot", out / "calibration.png", echo=False)
