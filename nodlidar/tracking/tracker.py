@@ -191,6 +191,7 @@ class _Track:
     centroids: list = field(default_factory=list)
     t_centroids: list = field(default_factory=list)
     last_scan: int = 0
+    n_points: int = 0
     motion: MotionEstimate | None = None
     coarse: MotionEstimate | None = None
     state: Any = None  # stonesoup GaussianState (x, vx, y, vy)
@@ -290,7 +291,7 @@ class Tracker:
                           (tr.state.timestamp - _EPOCH).total_seconds(), float(x[0]),
                           float(x[1]), float(np.hypot(x[2], x[3])) if has_v else float("nan"),
                           float(np.arctan2(x[3], x[2])) if has_v else float("nan"), tr.cov,
-                          len(tr.scans), int(sum(len(p) for p in tr.points)),
+                          len(tr.scans), tr.n_points,
                           len(tr.scans) >= self.config.confirm_scans, alive)
 
     def _estimate(self, tr: _Track) -> None:
@@ -469,6 +470,7 @@ class Tracker:
 
     def _add(self, tr: _Track, scan, idx, c, t) -> None:
         tr.points.append(scan.points[idx])
+        tr.n_points += len(idx)
         tr.times.append(scan.t_s[idx])
         tr.mirrors.append(scan.mirror[idx])
         tr.truth.append(None if scan.truth_id is None else scan.truth_id[idx])
