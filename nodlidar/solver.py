@@ -573,6 +573,7 @@ def solve(spec: DesignSpec, *, check: bool = True) -> Design:
                                  f" step {lidar.step_front})")
         m_pt = D * _u(theta_m)
         if not plan.chain:
+            assert plan.standoff_m is not None  # an unchained plan always has its OA
             z = _anchor_oz(theta_z, theta_m, plan.standoff_m, D, name) * _u(theta_z)
         else:
             if side not in prev:

@@ -137,7 +137,7 @@ class Verification:
                 return f"blocked by {who(int(self.blocker[i]))}"
             return f"hit {who(int(self.hit[i]))} instead" if self.hit[i] >= 0 else "miss their mirror"
 
-        parts: list[str] = []
+        parts: list[list] = []
         run: list = []
         for i in np.nonzero(mask)[0]:
             key = (who(int(self.expected[i])), cause(int(i)))
@@ -202,8 +202,8 @@ class Verification:
             inside = (g >= front[0]) & (g <= front[-1])
             table[g[inside] - front[0], q[inside]] = m.name
         runs: list[dict] = []
-        for g, row in zip(front, table, strict=True):
-            row = [str(x) for x in row]
+        for g, trow in zip(front, table, strict=True):
+            row = [str(x) for x in trow]
             if runs and runs[-1]["slots"] == row and runs[-1]["steps"][1] == g - 1:
                 runs[-1]["steps"][1] = int(g)
             else:

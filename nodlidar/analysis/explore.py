@@ -69,7 +69,7 @@ class Sweep:
         """
         key, sep, rhs = str(text).partition("=")
         key, rhs = key.strip(), rhs.strip()
-        require(bool(sep) and key and rhs, "--sweep", text,
+        require(bool(sep and key and rhs), "--sweep", text,
                 "KEY=LO:HI:STEP or KEY=A,B,C (e.g. layout.design_distance_m=0.5:5:0.25)")
         kind = _field_kind(key, spec) if spec is not None else float
         try:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+from typing import Any
 
 
 def register(sub) -> None:
@@ -57,7 +58,7 @@ def run(args) -> int:
     except InfeasibleDesignError as exc:
         # the alternative is for comparison only; its refusal must not hide the design
         alt_mirrors, alt_refused = [], str(exc)
-    out = {
+    out: dict[str, Any] = {
         "name": spec.name,
         "lidar": spec.lidar,
         "design_distance_m": spec.layout.design_distance_m,
