@@ -952,17 +952,31 @@ def _find_message(text: bytes) -> tuple[ScipReply | None, int]:
     """The first valid message starting after the beginning of ``text`` (a candidate
     ending ``LF LF``, leading LFs removed), and its offset; ``(None, -1)`` if none.
 
-    Linear in ``len(text)``: the per-line checksums are computed once (vectorised) and
-    a suffix "every line from here on verifies" flag tells in O(1) whether a strict
-    (distance/time) message could start at a line; :func:`parse_reply` runs only for
-    starts that pass these checks, at most twice per line (strict / lenient codes).
+    Linear in ``len(text)``: possible starts are the tails (at most :data:`_MAX_ECHO`
+    characters) of lines followed by a status line; only if there are any, the per-line
+    checksums are computed once (vectorised) and a suffix "every line from here on
+    verifies" flag tells in O(1) whether a strict (distance/time) message can start
+    there. :func:`parse_reply` runs only for starts that pass these checks, at most twice
+    per line (strict / lenient codes).
     """
     body = text[:-2] if text.endswith(b"\n\n") else text.rstrip(b"\n")
+    lines = body.split(LF)
+    n = len(lines)
+    cands: list[tuple[int, int, bool]] = []  # (line, offset in text, strict)
+    pos = 0
+    for i in range(n - 1):
+        line, status = lines[i], lines[i + 1]
+        e = len(line)
+        if _status_line_ok(status):
+            for j in range(max(0, e - _MAX_ECHO), e - 1):
+                if (i or j) and line[j:j + 2] in _KNOWN_CODES and _ECHO_RE.fullmatch(line, j):
+                    strict = len(status) == 3 and split_command(line[j:])[0] in _STRICT_CODES
+                    cands.append((i, pos + j, strict))
+        pos += e + 1
+    if not cands:
+        return None, -1
     a = np.frombuffer(body + LF, dtype=np.uint8)
     ends = np.flatnonzero(a == 0x0A)  # one per line
-    n = ends.size
-    if n < 2:
-        return None, -1
     starts = np.empty(n, dtype=np.intp)
     starts[0] = 0
     starts[1:] = ends[:-1] + 1
@@ -975,25 +989,14 @@ def _find_message(text: bytes) -> tuple[ScipReply | None, int]:
     strict_from[:n] = np.logical_and.accumulate(line_ok[::-1])[::-1]
     nonempty_from = np.ones(n + 1, dtype=bool)
     nonempty_from[:n] = np.logical_and.accumulate((lengths > 0)[::-1])[::-1]
-    starts_l, ends_l = starts.tolist(), ends.tolist()
-    for i in range(n - 1):
-        s0, e0 = starts_l[i], ends_l[i]
-        status = body[starts_l[i + 1]:ends_l[i + 1]]
-        if not _status_line_ok(status):
+    tried: set[tuple[int, bool]] = set()
+    for i, at, strict in cands:
+        if (i, strict) in tried or not (strict_from if strict else nonempty_from)[i + 2]:
             continue
-        tried: set[bool] = set()
-        for j in range(max(s0, e0 - _MAX_ECHO), e0 - 1):
-            if j == 0:
-                continue  # the whole candidate, already rejected
-            if body[j:j + 2] not in _KNOWN_CODES or not _ECHO_RE.fullmatch(body, j, e0):
-                continue
-            strict = len(status) == 3 and split_command(body[j:e0])[0] in _STRICT_CODES
-            if strict in tried or not (strict_from if strict else nonempty_from)[i + 2]:
-                continue
-            tried.add(strict)
-            reply = ScipFramer._valid(text[j:])
-            if reply is not None:
-                return reply, j
+        tried.add((i, strict))
+        reply = ScipFramer._valid(text[at:])
+        if reply is not None:
+            return reply, at
     return None, -1
 
 
