@@ -195,3 +195,48 @@ def test_batched_voxel_grid_equals_one_evaluation_per_velocity():
     a = _voxel_entropy_grid(P[:, :2], T, W, 4.0, 0.03, 0.01)
     b = [voxel_entropy(compensate(P, T, w, 4.0) + [0.01, 0.01, 0.0], 0.03) for w in W]
     assert_allclose(a, b, rtol=1e-12)
+
+
+def _grid_scene(speed, heading_deg, length_m=3.0):
+    """The study's speed x heading scene: the paper cylinder on a back-and-forth leg of
+    ``length_m`` through (2.5, 0)."""
+    from nodlidar.sim.scene import scene_from_dict
+
+    u = np.array([np.cos(np.radians(heading_deg)), np.sin(np.radians(heading_deg))])
+    s = np.array([2.5, 0.0]) - length_m / 2 * u
+    return scene_from_dict({"name": f"v{speed}-h{heading_deg}",
+                            "room": {"size_m": [8.0, 6.0, 2.5], "center_m": [2.5, 0.0],
+                                     "ceiling": False},
+                            "mover": [{"radius_m": 0.18, "height_m": 1.0,
+                                       "trajectory": "back_and_forth",
+                                       "start_m": [float(s[0]), float(s[1]), 0.0],
+                                       "heading_deg": heading_deg, "length_m": length_m,
+                                       "speed_m_s": speed}]})
+
+
+@pytest.mark.slow
+def test_reflected_windows_alone_are_not_biased_for_a_slow_mover(design):
+    """Issue 13 measured 0.036-0.041 m/s from each reflected window alone for a 0.05 m/s
+    object. Through the live pipeline (assembled scans, top-view clusters, one track per
+    object) each window's points alone give the motion within 4 mm/s and 2 deg (measured:
+    0.048-0.050 m/s, within 1.1 deg, seeds 0-1): the scatter of 60 scans of range noise,
+    well apart from the old 9-14 mm/s shortfall."""
+    from nodlidar.tracking.motion import MotionEstimate, refine_motion
+    from nodlidar.tracking.simdata import simulate_scans
+    from nodlidar.tracking.tracker import Tracker
+
+    scans = simulate_scans(design, 60, scene=_grid_scene(0.05, 45.0), seed=0)
+    trk = Tracker(range_sigma=design.lidar.range_sigma_m)
+    for s in scans:
+        trk.update(s)
+    tr = max(trk.all_tracks(), key=lambda t: len(t.scans))
+    P, T = np.concatenate(tr.points[-40:]), np.concatenate(tr.times[-40:])
+    M = np.concatenate(tr.mirrors[-40:])
+    guess = MotionEstimate(0.05, np.radians(45.0))
+    for m in np.unique(M[M >= 0]):
+        sel = M == m
+        assert sel.sum() > 500
+        est = refine_motion(P[sel], T[sel], guess, max_points=300)
+        print("window", m, sel.sum(), est.v_m_s, np.degrees(est.heading_rad))
+        assert abs(est.v_m_s - 0.05) <= 0.004
+        assert abs(np.degrees(est.heading_rad) - 45.0) <= 2.0
