@@ -43,6 +43,7 @@ def _ask(sock: socket.socket, line: bytes) -> bytes:
     return buf
 
 
+@pytest.mark.slow
 def test_emulate_fixed_ports_json_and_scip1_boot():
     lidar_port, servo_port = _free_ports(2)
     p = _emulate("--tcp", "--port", str(lidar_port), "--servo-port", str(servo_port),

@@ -121,7 +121,7 @@ def emulator():
         yield emu
 
 
-@settings(BUDGET, max_examples=600)
+@settings(BUDGET, max_examples=300)
 @given(packets=st.lists(st.builds(dx.InstructionPacket, ids,
                                   st.one_of(st.sampled_from(list(dx.Instruction)).filter(
                                       lambda i: i != dx.Instruction.STATUS), instructions),
