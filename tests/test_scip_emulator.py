@@ -285,10 +285,11 @@ def test_tcp_timestamps_rate_1():
         c.close()
 
 
-def test_tcp_second_connection_refused_until_the_first_hangs_up():
+def test_tcp_one_host_at_a_time():
     """One host at a time (issue 15: a second connection silently took over the
-    session): the second is closed at once while the first is alive and keeps its
-    stream; after the first hangs up the next host is served, on the same device."""
+    session): the second waits unanswered while the first is alive and keeps its stream,
+    a third is closed at once; when the first hangs up the waiting one is served, by the
+    same device, and its queued command answered."""
     clock = ManualClock()
     with ScipEmulator(URG, clock) as emu:
         url = emu.serve_tcp()
@@ -297,19 +298,24 @@ def test_tcp_second_connection_refused_until_the_first_hangs_up():
         next_scan(emu, clock)
         c1.read_messages(1)
         c2 = TcpClient(url)
+        c2.send(b"VV\n")
+        assert emu.wait_for(lambda st: st.queued_connections == 1)
+        c3 = TcpClient(url)
         with pytest.raises(ConnectionError):  # closed by the emulator, nothing answered
-            c2.ask(b"QT\n")
-        c2.close()
+            c3.ask(b"QT\n")
+        c3.close()
         assert emu.stats.refused_connections == 1 and emu.stats.connections == 1
         next_scan(emu, clock)  # the first host's stream goes on
         assert scip.decode_scan(c1.read_messages(1)[0]).echo == "MD0044072501000"
+        assert emu.stats.commands == 1  # c2's VV not read: it waits
         c1.close()
-        c3 = TcpClient(url)
-        # served, by the same device: the stream ended with c1, the laser is still on
-        assert c3.ask(b"BM\n") == [b"BM\n02R\n\n"]
+        vv = scip.parse_version(c2.read_messages(1)[0])  # served once c1 has gone
+        assert vv.protocol == "SCIP 2.0"
+        # the same device: the stream ended with c1, the laser is still on
+        assert c2.ask(b"BM\n") == [b"BM\n02R\n\n"]
         assert emu.device.stream is None
         assert emu.stats.connections == 2 and emu.stats.refused_connections == 1
-        c3.close()
+        c2.close()
 
 
 def test_tcp_long_line_is_bounded_and_answered():

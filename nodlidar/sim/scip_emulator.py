@@ -166,7 +166,9 @@ class EmulatorStats:
     bytes_corrupted: int = 0
     stalls: int = 0
     disconnects: int = 0
-    #: TCP connections refused because another host holds the session
+    #: TCP connections that waited for the host holding the session to leave
+    queued_connections: int = 0
+    #: TCP connections refused: another host held the session and one was already waiting
     refused_connections: int = 0
     #: command lines longer than ``max_line_bytes``, dropped (answered 0D)
     long_lines: int = 0
@@ -492,6 +494,16 @@ class _LinkClosed(Exception):
     pass
 
 
+def _hung_up(sock: socket.socket) -> bool:
+    """Has the peer of ``sock`` closed its end (or is ``sock`` closed)?"""
+    try:
+        p = select.poll()
+        p.register(sock.fileno(), select.POLLRDHUP | select.POLLHUP | select.POLLERR)
+        return bool(p.poll(0))
+    except (OSError, ValueError):  # closed meanwhile
+        return True
+
+
 class _FdLink:
     """Non-blocking read/write on a file descriptor (socket or pty master)."""
 
@@ -566,8 +578,10 @@ class ScipEmulator:
     -----
     Nothing is opened in the constructor; call :meth:`serve_tcp` or :meth:`serve_pty`
     (one transport per emulator), and :meth:`stop` or use ``with``. Over TCP one host at
-    a time holds the session (as a real Ethernet URG): a second connection is closed at
-    once (``stats.refused_connections``) unless the first host has hung up.
+    a time holds the session (as a real Ethernet URG): a second connection waits, unanswered,
+    until the first host hangs up (``stats.queued_connections``; so commands run one after
+    the other always find the device), a third is closed at once
+    (``stats.refused_connections``). It used to take the session over silently.
     """
 
     def __init__(self, model: LidarModel | None = None, clock: SimClock | None = None,
@@ -610,8 +624,9 @@ class ScipEmulator:
         """Listen on ``host:port`` (default the constructor's ``host`` and ``port``; port 0
         = any free port); return ``socket://host:port``.
 
-        One client at a time: while a host holds the session, a new connection is
-        refused (closed at once); once that host has hung up, the next one is served.
+        One client at a time: while a host holds the session, the next connection waits
+        (unanswered) and any further one is closed at once; once the host has hung up,
+        the waiting one is served.
         """
         self._check_unused()
         host = self.host if host is None else host
@@ -807,34 +822,53 @@ class ScipEmulator:
     # TCP ----------------------------------------------------------------------------
     def _accept_loop(self) -> None:
         ls = self._listener
-        while not self._stop.is_set():
-            if self._up_pending and self.clock.now() >= self._down_until:
-                self._up_pending = False
-                self.stats.up_times.append(time.monotonic())
-            try:
-                conn, _ = ls.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            if self.clock.now() < self._down_until:
-                conn.close()  # the device is away: refuse the host
-                continue
-            if self._session_busy():
-                self.stats.refused_connections += 1  # counted before the host can see it
-                conn.close()  # one host at a time (a real Ethernet URG)
-                self._notify()
-                continue
-            if self._up_pending:
-                self._up_pending = False
-                self.stats.up_times.append(time.monotonic())
-            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            self.stats.connections += 1
-            stop = threading.Event()
-            link = _FdLink(conn.fileno(), stop, sock=conn)
-            self._session_sock = conn
-            self._start_session(link, stop, conn.close)
-            self._notify()
+        queued: socket.socket | None = None  # one host waiting for the session
+        try:
+            while not self._stop.is_set():
+                if self._up_pending and self.clock.now() >= self._down_until:
+                    self._up_pending = False
+                    self.stats.up_times.append(time.monotonic())
+                if queued is not None:
+                    if self.clock.now() < self._down_until or _hung_up(queued):
+                        queued.close()  # the device went away, or the host gave up
+                        queued = None
+                    elif not self._session_busy():
+                        self._serve(queued)
+                        queued = None
+                try:
+                    conn, _ = ls.accept()
+                except TimeoutError:
+                    continue
+                except OSError:
+                    return
+                if self.clock.now() < self._down_until:
+                    conn.close()  # the device is away: refuse the host
+                    continue
+                if queued is None and not self._session_busy():
+                    self._serve(conn)
+                elif queued is None:  # wait until the host holding the session leaves
+                    queued = conn
+                    self.stats.queued_connections += 1
+                    self._notify()
+                else:  # one host at a time, one waiting (a real Ethernet URG serves one)
+                    self.stats.refused_connections += 1  # counted before the host sees it
+                    conn.close()
+                    self._notify()
+        finally:
+            if queued is not None:
+                queued.close()
+
+    def _serve(self, conn: socket.socket) -> None:
+        if self._up_pending:
+            self._up_pending = False
+            self.stats.up_times.append(time.monotonic())
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.stats.connections += 1
+        stop = threading.Event()
+        link = _FdLink(conn.fileno(), stop, sock=conn)
+        self._session_sock = conn
+        self._start_session(link, stop, conn.close)
+        self._notify()
 
     def _session_busy(self) -> bool:
         """Does a live host hold the TCP session? (False once it has hung up, even if
@@ -842,12 +876,7 @@ class ScipEmulator:
         t, sock = self._session_thread, self._session_sock
         if t is None or not t.is_alive() or sock is None:
             return False
-        try:
-            p = select.poll()
-            p.register(sock.fileno(), select.POLLRDHUP | select.POLLHUP | select.POLLERR)
-            return not p.poll(0)
-        except (OSError, ValueError):  # closed meanwhile
-            return False
+        return not _hung_up(sock)
 
     # pty ----------------------------------------------------------------------------
     def _open_pty(self) -> None:
