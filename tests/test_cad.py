@@ -692,6 +692,10 @@ def test_cli_writes_files(tmp_path, capsys):
     assert (folder / "assembly_deployed.step").is_file()
     assert (folder / "parts" / "base.stl").is_file()
     assert json.loads((folder / "manifest.json").read_text())["design"] == name
+    # the one overwrite policy: the design's folder exists now, so only with --force
+    assert main(["cad", str(PAPER), "--out", str(tmp_path), "--no-preview"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--force" in err
 
 
 def _paper_with(tmp_path, stem: str, **tables) -> Path:

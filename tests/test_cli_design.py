@@ -154,3 +154,12 @@ def test_exact_paper_reading_round_trips(tmp_path, capsys):
     assert main(["design", str(PAPER_EXACT), "--out", str(tmp_path)]) == 0
     spec = load_design(PAPER_EXACT)
     assert load_design(tmp_path / f"{spec.name}.toml") == spec
+
+
+def test_out_is_refused_when_it_exists_unless_forced(tmp_path, capsys):
+    # the one overwrite policy: a second --out into the same place needs --force
+    assert main(["design", str(PAPER), "--out", str(tmp_path)]) == 0
+    assert main(["design", str(PAPER), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--force" in err
+    assert main(["design", str(PAPER), "--out", str(tmp_path), "--force"]) == 0

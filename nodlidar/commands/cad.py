@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from ._args import add_force_arg
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -19,6 +21,7 @@ def register(subparsers) -> None:
                    help="assembly state(s) to write (default: both)")
     p.add_argument("--no-preview", action="store_true", help="skip the preview image")
     p.add_argument("--json", action="store_true", help="print the manifest as JSON")
+    add_force_arg(p)
     p.set_defaults(func=run)
 
 
@@ -37,12 +40,18 @@ def _progress_bar():
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from ..cad.params import mount_params_from_spec
     from ..solver import solve
     from ..spec import load_design
+    from ._args import check_output_path
 
     spec = load_design(args.design)
     params = mount_params_from_spec(spec)        # fail fast on bad [cad] values
+    # the one overwrite policy, before the minutes of CAD work: OUT/<name>/ is new or --force
+    if Path(args.out).is_dir():  # (a new root is created with its folders by the export)
+        check_output_path(Path(args.out) / spec.name, force=args.force, kind="directory")
     design = solve(spec)
     # cadquery only from here on
     from ..cad.export import export_cad

@@ -6,6 +6,8 @@ import json
 import sys
 from typing import Any
 
+from ._args import add_force_arg
+
 
 def register(sub) -> None:
     p = sub.add_parser("design", help="solve and verify a design file; print the mirror table",
@@ -15,6 +17,7 @@ def register(sub) -> None:
     p.add_argument("--method", choices=("anchor", "optimal"),
                    help="override placement.method from the file")
     p.add_argument("--out", help="also write design.json and the resolved TOML here")
+    add_force_arg(p)
     p.set_defaults(func=run)
 
 
@@ -48,6 +51,12 @@ def run(args) -> int:
     from ..verify import verify
 
     spec = load_design(args.design)
+    if args.out:  # the one overwrite policy: design.json is new or --force
+        from ._args import check_output_path
+
+        d = Path(args.out)
+        if d.exists():
+            check_output_path(d / "design.json", force=args.force)
     if args.method:
         spec = spec.replace(**{"placement.method": args.method})
     other_method = "optimal" if spec.placement.method == "anchor" else "anchor"
