@@ -62,6 +62,8 @@ def record(args, bag: Path, cloud: Path) -> dict:
     if p.returncode != 0:
         raise SystemExit(f"record failed ({p.returncode}): {(bag.parent / 'record.log').read_text()[-2000:]}")
     w, m = np.array(wall), np.array(mem)
+    np.savetxt(bag.parent.parent / f"{bag.parent.name}-rss.txt", np.c_[w, m], fmt="%.2f",
+               header="wall_s rss_mb")  # kept beside the work directory
     half = w >= w[-1] / 2 if len(w) else w.astype(bool)
     slope_wall = float(np.polyfit(w[half], m[half], 1)[0]) * 3600 if half.sum() >= 3 else float("nan")
     wall_s = time.monotonic() - t0
