@@ -200,9 +200,16 @@ class DynamixelBus:
                     self._ser = serial.serial_for_url(
                         self.url, baudrate=self.baudrate, timeout=0.002
                     )
-                except (serial.SerialException, OSError, ValueError) as e:
-                    raise DeviceError(f"bus.url = {self.url!r} cannot be opened: {e}") from e
-                self._ser.reset_input_buffer()
+                    self._ser.reset_input_buffer()
+                except (*_LINE_ERRORS, ValueError) as e:
+                    if self._ser is not None:
+                        try:
+                            self._ser.close()
+                        except _LINE_ERRORS:
+                            pass
+                        self._ser = None
+                    raise BusLineError(f"bus.url = {self.url!r} cannot be opened: "
+                                       f"{e or type(e).__name__}") from e
         return self
 
     def close(self) -> None:
