@@ -110,7 +110,15 @@ def test_large_sweep_in_process_equals_local_dask_cluster(spec):
     # sweep order: the first sweep varies slowest
     assert [r["layout.design_distance_m"] for r in a.rows[:12]] == [0.5] * 11 + [0.75]
     assert 0 < a.n_feasible < a.n_designs and any(r["pareto"] for r in a.rows)
-    b = explore(spec, sweeps, workers=2, processes=True, chunk=7)
+    # a local Dask cluster reached as an existing scheduler (the --scheduler path), the
+    # designs cut into other chunks than in process
+    from nodlidar.analysis.tolerance import _local_cluster
+
+    cluster = _local_cluster(2, True)
+    try:
+        b = explore(spec, sweeps, scheduler=cluster.scheduler_address, chunk=7)
+    finally:
+        cluster.close()
     # nothing random and rows put back in sweep order: equal to the last bit, whichever
     # process ran which chunk (NaN compared as NaN)
     assert len(a.rows) == len(b.rows)
