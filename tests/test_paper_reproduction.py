@@ -191,3 +191,25 @@ def test_literal_eqs_4_to_8_are_far_from_the_exact_model():
     p = eq4_8_point(r, th, m.patch.normal_azimuth, m.standoff_m, -design.spec.mirror.hinge_z_m)
     err = np.linalg.norm(p[:, [1, 0]] * [1, -1] - exact[:, :2], axis=1)
     assert np.median(err) > 0.3
+
+
+def test_explicit_plans_reproduce_the_automatic_split():
+    # Round trip between the two ways to state a design: the chained reading's automatic
+    # split (windows, mirrors_per_side, one OA, chain) written out as explicit
+    # [[placement.mirrors]] (with chain = true for the inner mirrors) gives the same mirrors.
+    spec = load_design(PAPER)
+    auto = solve(spec)
+    oa = spec.placement.standoff_m[0]
+    plans = []
+    for m in auto.mirrors:
+        plans.append({"name": m.name, "steps": [m.first_step, m.last_step],
+                      "anchor_step": m.anchor_step, "target_step": m.target_step,
+                      "target_offset": m.offset_index, "chain": m.index > 1,
+                      "standoff_m": oa if m.index == 1 else 0.0})
+    explicit = solve(spec.replace(**{"placement.mirrors": plans}))
+    for a in auto.mirrors:
+        b = explicit.mirror(a.name)
+        assert_allclose(b.patch.origin_, a.patch.origin_, atol=1e-12)
+        assert_allclose(b.patch.normal_, a.patch.normal_, atol=1e-12)
+        assert_allclose(b.target_bearing, a.target_bearing, atol=1e-15)
+    assert np.array_equal(explicit.direct_steps, auto.direct_steps)
