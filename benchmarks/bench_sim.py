@@ -19,7 +19,11 @@ scans; the second figure is a scan whose mirrors move (a per-beam lift state, he
 lift in progress of 1e-4 of the lift angle: the same geometry to 1e-5 rad), which casts
 every beam at the four mirror meshes again (two bounces) - the worst case.
 
-Run: ``.venv/bin/python benchmarks/bench_sim.py``.
+Scaling: the same scan and bare cast in the room with 0..400 extra poles (more scene
+triangles), printed as a curve and returned as ``sim.ratio_vs_embree_tris<N>``.
+
+Run: ``.venv/bin/python benchmarks/bench_sim.py`` or under ``benchmarks/run.py sim``
+(figures ``sim.ratio_vs_embree``, ``sim.scans_per_s``, ...).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from nodlidar.sim.raycast import SceneSimulator
+from nodlidar.sim.scene import Pole, room_scene
 from nodlidar.solver import solve
 from nodlidar.spec import load_design
 
@@ -49,7 +54,36 @@ def rate(fn, min_time: float = 1.0) -> float:
             return n / dt
 
 
-def main() -> None:
+def with_poles(k: int):
+    """The room with ``k`` extra poles on a grid (more static triangles)."""
+    import dataclasses
+
+    room = room_scene()
+    side = int(np.ceil(np.sqrt(k))) if k else 0
+    poles = [Pole((-3.0 + 6.0 * (i % side) / side, -2.0 + 4.0 * (i // side) / side), 0.03, 1.0,
+                  name=f"pole{i}") for i in range(k)]
+    return dataclasses.replace(room, statics=room.statics + tuple(poles))
+
+
+def ratio_in(design, scene, nod, min_time: float) -> tuple[int, float, float]:
+    """(static triangles, scans/s, bare embree casts/s) of one scene."""
+    sim = SceneSimulator(design, scene)
+    lid = design.lidar
+    s0 = sim.scan(0.0, nod, noise=False)
+    o_h, d_h, *_ = sim.head_rays(lid.steps)
+    o_w, d_w = sim.to_world(o_h, d_h, nod, s0.t_s)
+    bare = sim._static.intersector
+    k = [0]
+
+    def one_scan() -> None:
+        k[0] += 1
+        sim.scan(k[0] * lid.scan_period_s, nod, noise=True, seed=k[0])
+
+    return (len(sim._static.mesh.faces), rate(one_scan, min_time),
+            rate(lambda: bare.intersects_first(o_w, d_w), min_time))
+
+
+def main() -> dict[str, float]:
     design = solve(load_design(PAPER))
     sim = SceneSimulator(design, "room")
     lid = design.lidar
@@ -94,7 +128,17 @@ def main() -> None:
           f"({r_moving / real:6.1f}x real time)")
     print(f"  full pipeline               : {r_sim * n:10.0f} rays/s")
     print(f"  bare embree intersects_first: {r_bare * n:10.0f} rays/s (same {n} rays, static mesh)")
-    print(f"  ratio pipeline / bare embree: {r_sim / r_bare:10.2f}")
+    print(f"  ratio pipeline / bare embree: {r_sim / r_bare:10.2f}  (goal >= 0.5)")
+    figures = {"ratio_vs_embree": r_sim / r_bare, "scans_per_s": r_sim,
+               "realtime_x": r_sim / real, "moving_scans_per_s": r_moving,
+               "ratio_moving_vs_embree": r_moving / r_bare}
+    print("  scaling with scene triangles (room + poles):")
+    print(f"  {'triangles':>10} {'scans/s':>10} {'bare casts/s':>13} {'ratio':>7}")
+    for poles in (0, 25, 100, 400):
+        tris, rs, rb = ratio_in(design, with_poles(poles), nod, 0.5)
+        print(f"  {tris:10d} {rs:10.0f} {rb:13.0f} {rs / rb:7.2f}")
+        figures[f"ratio_vs_embree_tris{tris}"] = rs / rb
+    return figures
 
 
 if __name__ == "__main__":

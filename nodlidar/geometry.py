@@ -241,7 +241,13 @@ class MirrorPatch:
 
     @property
     def up_(self) -> np.ndarray:
-        return np.cross(self.normal_, self.along_)
+        # computed once per patch (the patch is frozen); read-only so no caller can alter it
+        up = self.__dict__.get("_up_cache")
+        if up is None:
+            up = np.cross(self.normal_, self.along_)
+            up.setflags(write=False)
+            object.__setattr__(self, "_up_cache", up)
+        return up
 
     @property
     def length(self) -> float:

@@ -126,27 +126,70 @@ class ScanTruth:
 
 
 class _MeshCaster:
-    """One mesh with an embree intersector; distances recomputed in float64."""
+    """One mesh with an embree intersector; distances recomputed in float64.
 
-    def __init__(self, mesh):
+    ``cull=True`` first drops the rays that miss the mesh's bounding box (a slab test in
+    float64 with a 1 mm margin, far above embree's float32 error, so no ray that embree
+    would report is dropped): a mover or a mirror is seen by few of the rays. Each ray is
+    cast on its own by embree, so casting a subset gives the same triangle per ray.
+    """
+
+    _MARGIN_M = 1e-3
+
+    def __init__(self, mesh, *, cull: bool = False):
         from trimesh.ray.ray_pyembree import RayMeshIntersector
+        from trimesh.util import unitize
 
         self.mesh = mesh
         self.intersector = RayMeshIntersector(mesh)
+        # the embree scene itself: RayMeshIntersector.intersects_first looks it up through
+        # a cache keyed on the mesh's hash on every call; the rays are prepared below
+        # exactly as intersects_first prepares them (float32, unit directions)
+        self._scene = self.intersector._scene
+        self._unitize = unitize
         tri = np.asarray(mesh.triangles, dtype=float)
         self.v0 = tri[:, 0]
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
+        self.cull = bool(cull)
+        self._offset = np.einsum("ij,ij->i", self.v0, self.normals)  # plane: x . n = offset
+        self._lo = np.asarray(mesh.bounds[0], dtype=float) - self._MARGIN_M
+        self._hi = np.asarray(mesh.bounds[1], dtype=float) + self._MARGIN_M
+
+    def may_hit(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """(n,) bool: the ray (half-line) meets the mesh's bounding box (with margin)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / dirs
+            t1 = (self._lo - origins) * inv
+            t2 = (self._hi - origins) * inv
+        # fmin/fmax skip the NaN of a zero direction component on the box face (no bound)
+        tmin = np.fmin(t1, t2).max(axis=1)
+        tmax = np.fmax(t1, t2).min(axis=1)
+        return (tmax >= 0.0) & (tmax >= tmin)
+
+    def _first(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Triangle index of each ray's first hit (-1 none): ``intersects_first``."""
+        o = np.array(origins, dtype=np.float32)
+        d = self._unitize(np.array(dirs, dtype=np.float32))
+        return np.asarray(self._scene.run(o, d), dtype=np.int64)
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest hit of each ray: ``(distance (n,) [m], inf if none; triangle (n,), -1)``."""
-        tri = np.asarray(self.intersector.intersects_first(origins, dirs), dtype=np.int64)
-        t = np.full(len(tri), np.inf)
-        hit = tri >= 0
-        if np.any(hit):
-            n = self.normals[tri[hit]]
-            num = np.sum((self.v0[tri[hit]] - origins[hit]) * n, axis=1)
-            den = np.sum(dirs[hit] * n, axis=1)
+        n_rays = len(origins)
+        if self.cull:
+            idx = np.flatnonzero(self.may_hit(origins, dirs))
+            tri = np.full(n_rays, -1, dtype=np.int64)
+            if len(idx):
+                tri[idx] = self._first(origins[idx], dirs[idx])
+        else:
+            tri = self._first(origins, dirs)
+        t = np.full(n_rays, np.inf)
+        hit = np.flatnonzero(tri >= 0)
+        if len(hit):
+            th = tri[hit]
+            n = self.normals[th]
+            num = self._offset[th] - np.einsum("ij,ij->i", origins[hit], n)
+            den = np.einsum("ij,ij->i", dirs[hit], n)
             with np.errstate(divide="ignore", invalid="ignore"):
                 t[hit] = np.where(np.abs(den) > 1e-12, num / den, np.inf)
         return t, tri
@@ -194,11 +237,13 @@ class SceneSimulator:
         else:
             self._face_part = np.zeros(0, dtype=int)
             self._static = None
-        self._movers = [_MeshCaster(m.mesh()) for m in self.scene.movers]
+        self._movers = [_MeshCaster(m.mesh(), cull=True) for m in self.scene.movers]
         # each mirror's glass as a mesh of its own (two triangles): beams are cast at it in
         # its unturned frame, one embree call per mirror and bounce
+        # (culled to the rays that reach the mirror's bounding box: its beam window)
         self._mirrors = [_MeshCaster(trimesh.Trimesh(p.corners(), [[0, 1, 2], [0, 2, 3]],
-                                                     process=False)) for p in self.patches]
+                                                     process=False), cull=True)
+                         for p in self.patches]
         self._head_cache: dict[tuple[float, float], tuple] = {}
 
     # -- pieces ------------------------------------------------------------------------
@@ -271,33 +316,44 @@ class SceneSimulator:
             last = np.where(ref, best_m, last)
         return o, d, off, first, bounces, alive
 
-    def _head_rays_cached(self, steps, lift_left, lift_right):
+    def _head_rays_cached(self, steps, lift_left, lift_right, whole: bool | None = None):
         """:meth:`head_rays`, memoised for whole scans with a constant lift state (the usual
-        case: the head-frame paths then do not change from scan to scan)."""
-        fl, fr = np.asarray(lift_left, dtype=float), np.asarray(lift_right, dtype=float)
-        whole = np.array_equal(steps, self.lidar.steps)
-        if not (whole and np.ptp(fl) == 0 and np.ptp(fr) == 0):
+        case: the head-frame paths then do not change from scan to scan). ``whole``: the
+        caller knows ``steps`` are all steps (None: compare)."""
+        if isinstance(lift_left, int | float) and isinstance(lift_right, int | float):
+            constant, key = True, (float(lift_left), float(lift_right))
+        else:
+            fl, fr = np.asarray(lift_left, dtype=float), np.asarray(lift_right, dtype=float)
+            constant = np.ptp(fl) == 0 and np.ptp(fr) == 0
+            key = (float(fl.flat[0]), float(fr.flat[0])) if constant else None
+        if whole is None:
+            whole = np.array_equal(steps, self.lidar.steps)
+        if not (whole and constant):
             return self.head_rays(steps, lift_left, lift_right)
-        key = (float(fl.flat[0]), float(fr.flat[0]))
         hit = self._head_cache.get(key)
         if hit is None:
             hit = self.head_rays(steps, key[0], key[1])
             for a in hit:
                 a.setflags(write=False)
+            if len(hit) == 6:
+                # the head points relative to the nod pivot, for to_world (cached with them)
+                rel = hit[0] - self.pivot
+                rel.setflags(write=False)
+                hit = (*hit, rel)
             if len(self._head_cache) > 64:  # a lift in progress makes many keys
                 self._head_cache.clear()
             self._head_cache[key] = hit
         return hit
 
     def to_world(self, p_head: np.ndarray, d_head: np.ndarray, nod_rad: np.ndarray,
-                 t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                 t_s: np.ndarray, _rel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Head-frame points/directions at per-row nod [rad] and time [s] -> world frame."""
         c, s = np.cos(nod_rad), np.sin(nod_rad)
 
         def ry(v):  # R_y(nod) per row: positive pitch tips +x down (conventions.md)
             return np.stack([c * v[:, 0] + s * v[:, 2], v[:, 1], -s * v[:, 0] + c * v[:, 2]], -1)
 
-        p_sensor = ry(p_head - self.pivot) + self.pivot
+        p_sensor = ry(p_head - self.pivot if _rel is None else _rel) + self.pivot
         d_sensor = ry(d_head)
         pose = self.scene.sensor
         return pose.to_world(p_sensor, t_s), d_sensor @ pose.rotation.T
@@ -345,18 +401,31 @@ class SceneSimulator:
         rng, seed : optional
             Noise generator, or a seed for a fresh one.
         """
-        steps = self.lidar.steps if steps is None else np.asarray(steps)
+        rays = self._world_rays(t_scan_s, nod_rad, lift_left, lift_right, steps)
+        dist, obj, part = self.cast_world(rays[5], rays[6], rays[1])
+        if noise and rng is None:
+            rng = np.random.default_rng(seed)
+        return self._truth(rays, dist, obj, part, rng, noise)
+
+    def _world_rays(self, t_scan_s, nod_rad, lift_left, lift_right, steps):
+        """World rays of one scan: (steps, t, nod, head-path offset, first mirror, origins,
+        directions, bounces, alive)."""
+        whole = steps is None
+        steps = self.lidar.steps if whole else np.asarray(steps)
         n = len(steps)
         t = self.beam_times(t_scan_s, steps)
         nod = np.broadcast_to(np.asarray(nod_rad, dtype=float), (n,)).astype(float)
-        o_h, d_h, off, first, bounces, alive = self._head_rays_cached(steps, lift_left, lift_right)
-        o_w, d_w = self.to_world(o_h, d_h, nod, t)
-        dist, obj, part = self.cast_world(o_w, d_w, t)
+        o_h, d_h, off, first, bounces, alive, *rel = self._head_rays_cached(
+            steps, lift_left, lift_right, whole=True if whole else None)
+        o_w, d_w = self.to_world(o_h, d_h, nod, t, rel[0] if rel else None)
+        return steps, t, nod, off, first, o_w, d_w, bounces, alive
+
+    def _truth(self, rays, dist, obj, part, rng, noise) -> ScanTruth:
+        """ScanTruth of one scan from its rays and their world hits."""
+        steps, t, nod, off, first, o_w, d_w, bounces, alive = rays
         hit = alive & np.isfinite(dist)
         true_r = np.where(hit, off + dist, np.nan)
         pts = np.where(hit[:, None], o_w + np.where(hit, dist, 0.0)[:, None] * d_w, np.nan)
-        if noise and rng is None:
-            rng = np.random.default_rng(seed)
         r = measure(true_r, self.lidar, rng, noise=noise)
         return ScanTruth(steps=steps, t_s=t, nod_rad=nod, true_range_m=true_r, range_m=r,
                          mirror=first, bounces=bounces, object_id=np.where(hit, obj, HIT_NONE),
@@ -383,7 +452,7 @@ class SceneSimulator:
         """
         period = self.lidar.scan_period_s
         k0 = int(round(t0_s / period))
-        out = []
+        rays = []
         for i in range(int(n_scans)):
             t_scan = t0_s + i * period
             t = self.beam_times(t_scan)
@@ -393,7 +462,18 @@ class SceneSimulator:
                 pitch = np.asarray(nod(t), dtype=float)
             else:
                 pitch = float(nod)
+            rays.append(self._world_rays(t_scan, pitch, lift_left, lift_right, None))
+        if not rays:
+            return []
+        # every scan's rays in one embree call per mesh (each ray is cast on its own, so
+        # the hits are those of scan-by-scan casts)
+        cut = np.cumsum([len(r[0]) for r in rays])[:-1]
+        dist, obj, part = self.cast_world(np.concatenate([r[5] for r in rays]),
+                                          np.concatenate([r[6] for r in rays]),
+                                          np.concatenate([r[1] for r in rays]))
+        out = []
+        for i, (r, d, o, p) in enumerate(zip(rays, np.split(dist, cut), np.split(obj, cut),
+                                             np.split(part, cut))):
             rng = np.random.default_rng([int(seed), k0 + i]) if noise else None
-            out.append(self.scan(t_scan, pitch, lift_left, lift_right, noise=noise, rng=rng))
+            out.append(self._truth(r, d, o, p, rng, noise))
         return out
-
