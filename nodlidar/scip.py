@@ -244,7 +244,7 @@ def encode_values(values: np.ndarray | Sequence[int], n_chars: int) -> bytes:
     return chars.astype(np.uint8).tobytes()
 
 
-def decode_values(data: bytes | bytearray | memoryview, n_chars: int) -> np.ndarray:
+def decode_values(data: bytes | bytearray | memoryview | np.ndarray, n_chars: int) -> np.ndarray:
     """Decode a joined block of ``n_chars``-character groups (vectorised).
 
     Parameters
@@ -1452,7 +1452,8 @@ def _take(d: dict[str, str], keys: Sequence[str], what: str) -> tuple[list[str],
 def parse_version(reply: ScipReply | bytes) -> VersionInfo:
     """Parse a ``VV`` reply."""
     vals, rest = _take(parse_info(reply), ("VEND", "PROD", "FIRM", "PROT", "SERI"), "VV")
-    return VersionInfo(*vals, extra=rest)
+    vend, prod, firm, prot, seri = vals
+    return VersionInfo(vend, prod, firm, prot, seri, extra=rest)
 
 
 def parse_params(reply: ScipReply | bytes) -> SensorParams:
@@ -1465,8 +1466,9 @@ def parse_params(reply: ScipReply | bytes) -> SensorParams:
             nums.append(int(v.strip()))
         except ValueError:
             raise ProtocolError(f"scip PP {k} = {v!r} is invalid; allowed: an integer") from None
+    dmin, dmax, ares, amin, amax, afrt, rpm = nums
     try:
-        return SensorParams(vals[0], *nums, extra=rest)
+        return SensorParams(vals[0], dmin, dmax, ares, amin, amax, afrt, rpm, extra=rest)
     except ParameterError as e:  # the device's reply, not a caller's argument
         raise ProtocolError(f"{e} (in the device's PP reply)") from None
 
@@ -1475,5 +1477,5 @@ def parse_state(reply: ScipReply | bytes) -> SensorState:
     """Parse an ``II`` reply (missing keys become ``""``)."""
     d = parse_info(reply)
     keys = ("MODL", "LASR", "SCSP", "MESM", "SBPS", "TIME", "STAT")
-    vals = [d.pop(k, "") for k in keys]
-    return SensorState(*vals, extra=d)
+    modl, lasr, scsp, mesm, sbps, tim, stat = (d.pop(k, "") for k in keys)
+    return SensorState(modl, lasr, scsp, mesm, sbps, tim, stat, extra=d)

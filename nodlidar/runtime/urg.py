@@ -286,10 +286,11 @@ class UrgDriver:
 
     def close(self) -> None:
         """Stop any stream (best effort) and close the port."""
-        if self.is_open:
+        ser = self._ser
+        if ser is not None and ser.is_open:
             try:
-                self._ser.write(b"QT\n")
-                self._ser.flush()
+                ser.write(b"QT\n")
+                ser.flush()
             except (serial.SerialException, OSError):
                 pass
         self._close_port()
@@ -526,6 +527,7 @@ class UrgDriver:
                     raise DeviceError(f"urg clock sync: {e}") from None
                 self._reconnect(str(e))
         self._sync_source, self._sync_samples = time_source, int(samples)
+        assert self.clock_sync is not None  # set by _sync
         return self.clock_sync
 
     def _sync(self, samples: int, time_source: Callable[[], float]) -> None:
@@ -546,6 +548,7 @@ class UrgDriver:
                     best = (rtt, 0.5 * (t0 + t1) - dev_ms / 1000.0)
         finally:
             self._request_ok(b"TM2\n", ("00", "03"))
+        assert best is not None  # samples >= 1
         self.clock_sync = ClockSync(offset_s=best[1], rtt_s=best[0], samples=samples)
 
     def _request_ok(self, line: bytes, allowed: tuple[str, ...]) -> scip.ScipReply:
@@ -583,11 +586,12 @@ class UrgDriver:
             key = (r.command, r.start, r.end, r.cluster)
             prev = self._previous
             # the previous scan of the same steps, if at most 1 s old
-            use = prev is not None and prev[0] == key and 0 < ts - prev[1] <= 1000
-            flags = self.plausibility.flag(
-                rm, dmin_mm=p.dmin_mm, dmax_mm=p.dmax_mm,
-                previous_mm=prev[2] if use else None,
-                period_s=(ts - prev[1]) / 1000.0 if use else period_ms / 1000.0)
+            if prev is not None and prev[0] == key and 0 < ts - prev[1] <= 1000:
+                previous, period_s = prev[2], (ts - prev[1]) / 1000.0
+            else:
+                previous, period_s = None, period_ms / 1000.0
+            flags = self.plausibility.flag(rm, dmin_mm=p.dmin_mm, dmax_mm=p.dmax_mm,
+                                           previous_mm=previous, period_s=period_s)
             ranges_m[flags] = np.nan
             self.stats.implausible_values += int(flags.sum())
             self._previous = (key, ts, rm)
@@ -698,7 +702,7 @@ class UrgDriver:
                 and e[:13] == body[:13] and e[15:] == body[15:])
 
     def _stream(self, base: scip.DistanceRequest, total: int, dev_count: int) -> Iterator[Scan]:
-        every = base.interval + 1
+        every = (base.interval or 0) + 1
         period_ms = 60000.0 / self._params().scan_rpm
         delivered = 0
         first_ms: int | None = None
@@ -733,7 +737,7 @@ class UrgDriver:
                         last_index = index
                         scan = self._make_scan(fr, t_rx, ts, index, reply.raw)
                         if dev_count:
-                            device_left = fr.remaining
+                            device_left = fr.remaining or 0
                         delivered += 1
                         yield scan
                         if dev_count and fr.remaining == 0:
@@ -778,7 +782,7 @@ class UrgDriver:
                 req.start, req.end, req.cluster, req.interval, req.tag):
             self.stats.stale_messages += 1
             return None
-        if req.count and not r.count < req.count:
+        if req.count and not (r.count or 0) < req.count:
             self.stats.bad_scans += 1
             return None
         return fr

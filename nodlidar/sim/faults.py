@@ -153,12 +153,12 @@ class FaultInjector:
         if cfg.corrupt_byte_prob or cfg.drop_byte_prob:
             a = np.frombuffer(data, dtype=np.uint8).copy()
             if cfg.corrupt_byte_prob:
-                hit = rng.random(a.size) < cfg.corrupt_byte_prob
-                n_hit = int(hit.sum())
+                mask = rng.random(a.size) < cfg.corrupt_byte_prob
+                n_hit = int(mask.sum())
                 corrupted += n_hit
                 if n_hit:
                     # add 1..255 so the byte surely changes
-                    a[hit] = (a[hit].astype(np.int32) + rng.integers(1, 256, n_hit)) % 256
+                    a[mask] = (a[mask].astype(np.int32) + rng.integers(1, 256, n_hit)) % 256
             if cfg.drop_byte_prob:
                 keep = rng.random(a.size) >= cfg.drop_byte_prob
                 dropped = int(a.size - keep.sum())

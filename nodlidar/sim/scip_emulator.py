@@ -468,13 +468,13 @@ class ScipDevice:
             self._pending_gd = keep
         s = self.stream
         while s is not None and (s.next_k + 1) * self.period_s <= now + 1e-9:
-            step = s.request.interval + 1
+            step = (s.request.interval or 0) + 1
             newest = math.floor(now / self.period_s + 1e-9) - 1
             behind = (newest - s.next_k) // step
             if behind > self.max_backlog_scans:
                 self.stats.scans_skipped += behind
                 s.next_k += behind * step
-            count = s.request.count
+            count = s.request.count or 0
             remaining = 0 if count == 0 else count - s.sent - 1
             out.append((s.next_k, self._scan_message(s.next_k, s.request, "99", remaining)))
             s.sent += 1
@@ -655,7 +655,7 @@ class ScipEmulator:
         self._pty_link = Path(link) if link is not None else None
         self._open_pty()
         self._spawn(self._pty_loop, "scip-emu-pty")
-        return str(self._pty_link) if self._pty_link is not None else self.pty_path
+        return str(self._pty_link) if self._pty_link is not None else str(self.pty_path)
 
     @property
     def port(self) -> str:
@@ -822,6 +822,7 @@ class ScipEmulator:
     # TCP ----------------------------------------------------------------------------
     def _accept_loop(self) -> None:
         ls = self._listener
+        assert ls is not None  # serve_tcp() made it
         queued: socket.socket | None = None  # one host waiting for the session
         try:
             while not self._stop.is_set():
@@ -905,6 +906,7 @@ class ScipEmulator:
             stop = threading.Event()
             ended = threading.Event()
             self.stats.connections += 1
+            assert self._pty_fds is not None  # serve_pty() opened it
             link = _FdLink(self._pty_fds[0], stop)
             self._start_session(link, stop, ended.set, new_link=False)
             while not ended.wait(0.05):
