@@ -547,12 +547,15 @@ def _robust_mirror(prob: _MirrorProblem, sig_r: np.ndarray, config: CalibrationC
                             max_nfev=200)
         x, nfev = sol.x, sol.nfev
     used = near.copy()
-    for _ in range(2):  # the joint fit re-gates and refits; this only starts it well
+    # the joint fit re-gates and refits; this only starts it well (a later round: the
+    # previous fit's pose, gated once)
+    for _ in range(1 if warm else 2):
         new = near & (np.abs(prob.residuals(x)) <= config.gate_sigma * sig)
         if new.sum() < config.min_points:
             raise CalibrationError(f"mirror {name}: only {int(new.sum())} reflected points "
                                    f"agree with one mirror pose; need {int(config.min_points)}")
-        if np.array_equal(new, used):
+        if np.array_equal(new, used) or warm:
+            used = new
             break
         used = new
         sub, w = prob.subset(used), 1.0 / sig[used]
@@ -820,9 +823,10 @@ def _gauss_newton(joint: _Joint, theta: np.ndarray, lo: np.ndarray, hi: np.ndarr
             break
         small = np.all(np.abs(new - theta) <= 1e-3 * np.sqrt(np.diag(np.linalg.pinv(A))) + 1e-12)
         theta, f, cost, rays = new, f_n, c_n, rays_n
-        J = joint.jac(theta, rays)
         if small:
+            # converged: a step of 1e-3 sigma leaves the Jacobian as it was (to ~1e-3)
             break
+        J = joint.jac(theta, rays)
     return theta, f, J
 
 
