@@ -416,7 +416,7 @@ def test_ctrl_c_with_dask_workers_is_one_line(tmp_path):
             os.killpg(p.pid, signal.SIGKILL)
             p.communicate()
     lines = [ln for ln in err.replace("\r", "\n").splitlines() if ln.strip()]
-    assert p.returncode == 130
+    assert p.returncode == 130, err[-2000:]
     assert lines == ["nodlidar tolerance: interrupted"], err[-2000:]
 
 

@@ -60,6 +60,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .._light import MAX_SAMPLES  # defined without numpy: the CLI parser shows it
 from ..errors import ParameterError, require
 from ..geometry import (
     MirrorPatch,
@@ -120,7 +121,6 @@ LIDAR_COLUMNS = ("yaw", "pitch", "x", "y", "z", "roll")
 #: chunk traces every beam of every mirror at once.
 MAX_SIGMA_RAD = 0.2
 MAX_SIGMA_M = 0.05
-MAX_SAMPLES = 2_000_000
 MAX_CHUNK_SIZE = 20_000
 MAX_RANGE_M = 100.0
 
@@ -732,8 +732,10 @@ def _local_cluster(n_workers: int, processes: bool):
         # when another cluster had that port)
         # (threads, processes=False, talk in-process: no host to bind)
         net = {"host": "127.0.0.1", "worker_dashboard_address": "127.0.0.1:0"} if processes else {}
+        # silence_logs=CRITICAL: a chunk's error reaches us through its future anyway, and on
+        # Ctrl-C workers logged ERRORs about data released under them ("Could not find data")
         return LocalCluster(n_workers=n_workers, processes=processes, threads_per_worker=1,
-                            dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR, **net)
+                            dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL, **net)
 
 
 @contextlib.contextmanager

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import sys
 
-from ..analysis.tolerance import MAX_SAMPLES
+from .._light import MAX_SAMPLES  # (not analysis.tolerance: --help imports no numpy)
 from ._args import bounded_int
 
 
@@ -60,6 +60,13 @@ def run(args) -> int:
         if exc.field != "scheduler":
             raise
         raise ParameterError("--scheduler", exc.value, exc.allowed) from None
+    except KeyboardInterrupt:
+        # the CLI prints one 'interrupted' line; Dask's late shutdown messages (at exit,
+        # after the cluster is closed) would only bury it
+        import logging
+
+        logging.disable(logging.CRITICAL)
+        raise
     finally:
         close()
     sens = sensitivities(design)
