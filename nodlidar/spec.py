@@ -10,9 +10,12 @@ A design file (``design/*.toml``) describes one sensor build::
     [nod]        pitch_min_rad, pitch_max_rad, rate_rad_s, pivot_m
     [reference]  optional published numbers to compare against (free-form)
 
-Other top-level tables (``[cad]``, ``[tolerance]``, ...) are kept verbatim in
-:attr:`DesignSpec.sections` for the modules that own them. Unknown keys inside the
-tables above are errors, so a typo never silently falls back to a default.
+The owned tables ``[tolerance]``, ``[calibration]`` and ``[cad]`` are kept verbatim in
+:attr:`DesignSpec.sections` for the modules that own them, and parsed by them on load.
+Loading goes through :mod:`nodlidar.validation`: unknown sections and keys are errors
+naming the nearest valid one (a typo never silently falls back to a default), values are
+typed strictly (no ``true`` for a number, no ``"false"`` for a boolean, finite numbers) and
+bounded physically, and the name must be usable as a folder name.
 """
 
 from __future__ import annotations
