@@ -81,8 +81,10 @@ class TcpClient:
 
 
 def processed(emu: ScipEmulator, before: int) -> None:
-    """Wait until the emulator has answered a command sent after ``before`` answered
-    commands (its immediate replies are written)."""
+    """Wait until the emulator has answered (replies written) the command sent when
+    ``emu.stats.commands`` read ``before``. (``commands`` counts a line before its reply
+    is written, so it is settled for every reply a host has seen; ``commands_answered``
+    may still lag.)"""
     assert emu.wait_for(lambda st: st.commands_answered > before), "command not processed"
 
 
@@ -178,7 +180,7 @@ def test_tcp_spec_exchanges(manual_tcp):
     assert c.ask(b"BM\n") == [b"BM\n02R\n\n"]
     assert c.ask(b"XX\n") == [b"XX\n0Ee\n\n"]
     assert c.ask(b"SCIP2.0\n") == [b"SCIP2.0\n0Ee\n\n"]
-    n = emu.stats.commands_answered
+    n = emu.stats.commands
     c.send(b"GD0384038601\n")
     processed(emu, n)
     next_scan(emu, clock)
@@ -197,7 +199,7 @@ def test_tcp_gs_example():
     with ScipEmulator(URG, clock, gs_source, timer_offset_ms=16_000_000) as emu:
         c = TcpClient(emu.serve_tcp())
         assert c.ask(b"BM\n") == [b"BM\n00P\n\n"]
-        n = emu.stats.commands_answered
+        n = emu.stats.commands
         c.send(b"GS0384038601\n")
         processed(emu, n)
         next_scan(emu, clock)
@@ -359,7 +361,7 @@ def test_pty_spec_exchanges():
         with serial.Serial(path, 115200, timeout=2) as ser:
             ser.write(b"BM\n")
             assert ser.read_until(b"\n\n") == b"BM\n00P\n\n"
-            n = emu.stats.commands_answered
+            n = emu.stats.commands
             ser.write(b"GD0384038601\n")
             processed(emu, n)
             next_scan(emu, clock)
@@ -393,7 +395,7 @@ def test_pty_stream_through_link(tmp_path):
     with ScipEmulator(URG, clock) as emu:
         assert emu.serve_pty(link=link) == str(link)
         with serial.serial_for_url(str(link), timeout=5) as ser:
-            n = emu.stats.commands_answered
+            n = emu.stats.commands
             ser.write(b"MD0044072501000\n")
             processed(emu, n)
             framer = scip.ScipFramer()
@@ -538,7 +540,7 @@ class _TcpWire:
 
     def exchange(self, line: bytes, n: int = 1) -> list[bytes]:
         emu = self.emu
-        cmds = emu.stats.commands_answered
+        cmds = emu.stats.commands
         self.client.send(line)
         if line.strip():
             processed(emu, cmds)
@@ -564,14 +566,13 @@ class _PtyWire:
         self.ser = serial.Serial(self.emu.serve_pty(), 115200, timeout=0.1)
         self.framer = scip.ScipFramer()
         self.queue: list[bytes] = []
-        self.answered = 0  # commands the emulator has answered
 
     def exchange(self, line: bytes, n: int = 1) -> list[bytes]:
         emu = self.emu
+        cmds = emu.stats.commands
         self.ser.write(line)
         if line.strip():
-            processed(emu, self.answered)
-            self.answered += 1
+            processed(emu, cmds)
         deadline = time.monotonic() + 5.0
         while len(self.queue) < n:
             # one message at a time: a pty holds only a few kB
@@ -801,11 +802,36 @@ def test_hokuyolx_client_over_tcp():
     """The independent hokuyolx client (written for Hokuyo's Ethernet sensors) talks to
     the emulator over TCP: PP/VV/II, BM, TM0/1/2, GD over the whole 0..768 step table,
     a 3-scan MD with the remaining count, HS and DB through its request layer (which
-    checks echo and status sums) - each result against the emulator's ground truth."""
+    checks echo and status sums) - each result against the emulator's ground truth.
+
+    hokuyolx reads until a chunk happens to end in LF LF, so two messages in the socket
+    at once garble it: a helper moves the manual clock to each scan only once hokuyolx
+    has asked for it (its request answered) and read everything sent before (nothing
+    unread in its socket)."""
+    import fcntl
+    import struct
+    import termios
+    import threading
+
     hokuyolx = pytest.importorskip("hokuyolx")  # a test dependency (pyproject [test])
-    clock = SimClock(rate=10.0)  # hokuyolx blocks in recv: the clock must run by itself
-    with ScipEmulator(URG, clock, flat_wall_source(URG, 1.5, sway_m=0.2),
-                      port=0) as emu:
+    clock = ManualClock()
+
+    def unread(sock: socket.socket) -> int:
+        return struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0" * 4))[0]
+
+    def scan_when(emu: ScipEmulator, ready) -> threading.Thread:
+        def run():
+            if not emu.wait_for(ready):
+                return
+            deadline = time.monotonic() + 5
+            while unread(lx._sock) and time.monotonic() < deadline:
+                time.sleep(0.001)  # polling a condition: hokuyolx reading its reply
+            next_scan(emu, clock)
+        t = threading.Thread(target=run, daemon=True)
+        t.start()
+        return t
+
+    with ScipEmulator(URG, clock, flat_wall_source(URG, 1.5, sway_m=0.2)) as emu:
         host, port = emu.serve_tcp().removeprefix("socket://").rsplit(":", 1)
         lx = hokuyolx.HokuyoLX(addr=(host, int(port)), tsync=False, info=True,
                                activate=False, convert_time=False, timeout=5)
@@ -816,15 +842,24 @@ def test_hokuyolx_client_over_tcp():
             assert lx.sensor_state()["LASR"] == "OFF"
             assert lx.activate() == (0, hokuyolx.statuses.activation_statuses["00"])
             assert lx.tsync_enter()[0] == "00"
-            t0 = lx.tsync_get()
+            assert lx.tsync_get() == emu.device.timer_ms(clock.now())
             assert lx.tsync_exit()[0] == "00"
-            assert 0 <= t0 <= emu.device.timer_ms(clock.now())
             lx.activate()  # TM0 switched the laser off
+            n = emu.stats.commands
+            t = scan_when(emu, lambda st: st.commands_answered > n)  # GD answered
             ts, scan = lx.get_dist(0, 768)
+            t.join(5)
             req = scip.DistanceRequest("GD", 0, 768)
             assert np.array_equal(scan, emu.expected_ranges_mm(emu.scan_index(ts), req))
-            assert scan[:44].tolist() == [19] * 44
-            got = list(lx.iter_dist(scans=3))
+            assert scan[:44].tolist() == [19] * 44 and scan[726:].tolist() == [19] * 43
+            n = emu.stats.commands
+            t = scan_when(emu, lambda st: st.commands_answered > n)  # MD acknowledged
+            got = []
+            for item in lx.iter_dist(scans=3):
+                t.join(5)
+                got.append(item)
+                if len(got) < 3:
+                    t = scan_when(emu, lambda st: True)  # the scan before was taken
             assert [p for _, _, p in got] == [2, 1, 0]
             req = scip.DistanceRequest("MD", 44, 725, 0, 0, 3)
             for scan, ts, _ in got:

@@ -157,7 +157,8 @@ class EmulatorStats:
 
     connections: int = 0
     commands: int = 0
-    #: command lines whose immediate replies have all been written (transports only)
+    #: command lines whose immediate replies have all been written (transports only);
+    #: ``commands`` counts them when they arrive, before any reply is written
     commands_answered: int = 0
     messages_sent: int = 0
     scans_sent: int = 0
@@ -769,7 +770,8 @@ class ScipEmulator:
                         for msg in dev.handle_line(line, clock.now()):
                             if not self._emit(link, msg, False, stop):
                                 return
-                        self.stats.commands_answered += 1
+                        if line.strip(b"\r"):  # as ScipDevice counts stats.commands
+                            self.stats.commands_answered += 1
                         self._notify()  # the command is processed (wait_for)
                 for msg in dev.poll(clock.now()):
                     if not self._emit(link, msg, True, stop):
