@@ -103,6 +103,8 @@ CASES = [
     ("explore", [P, "--sweep", "layout.design_distance_m=1:2:0"], "--sweep"),
     ("explore", [P, "--sweep", "layout.design_distance_m=1:2:0.5", "--scheduler", "not a url"],
      "--scheduler"),
+    ("explore", [P, "--sweep", "layout.design_distance_m=1:2:0.5", "--scheduler", "{HTTP}"],
+     "--scheduler"),
     ("info", ["--sim-rate", "1e-9"], "--sim-rate"),
     ("info", ["--port", "foo://x", "--servo-port", "foo://y"], "--port"),
     ("record", ["--out", "{T}/bag1", "--seconds", "inf"], "--seconds"),
@@ -114,6 +116,7 @@ CASES = [
     ("report", [P, "--samples", "100000000000"], "--samples"),
     ("report", [P, "--workers", "-1"], "--workers"),
     ("report", [P, "--scheduler", "not a url"], "--scheduler"),
+    ("report", [P, "--scheduler", "{HTTP}", "--out", "{T}/rep"], "--scheduler"),
     ("scan", ["--sim-rate", "1e-9"], "--sim-rate"),
     ("scan", ["--robot2sensor", "1e308", "0", "0", "0", "0", "0"], "--robot2sensor"),
     ("scan", ["--out", "{T}"], "--out"),
@@ -149,8 +152,6 @@ _CLI = "CLI conventions (commands/report.py)"
 _SCIP = "SCIP side (runtime/urg.py)"
 _TRK = "tracking (commands/study.py, commands/track.py)"
 XFAIL: dict[tuple[str, str], pytest.MarkDecorator] = {
-    ("calibrate", "--sim --plot {T}/x.txt"):
-        _owned(_CAL, "--plot x.txt: a PIL traceback after the calibration"),
     ("info", "--port foo://x --servo-port foo://y"):
         _owned(_SCIP, "--port foo://x: pyserial's ValueError traceback"),
     ("scan", "--port foo://x --servo-port foo://y"):
@@ -162,6 +163,8 @@ XFAIL: dict[tuple[str, str], pytest.MarkDecorator] = {
     ("report", f"{P} --samples 100000000000"):
         _owned(_CLI, "names tolerance.samples, not --samples (no bound on --samples)"),
     ("report", f"{P} --scheduler not a url"): _owned(_CLI, "names scheduler, not --scheduler"),
+    ("report", f"{P} --scheduler {{HTTP}} --out {{T}}/rep"):
+        _owned(_CLI, "names scheduler, not --scheduler"),
     ("view", "--sim-rate 1e-9"):
         _owned("nodlidar view (dcb26b9)", "prints its URL line before the device options "
                "are checked (call _runtime_args.check_sim_options first)"),

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_walls", "plot_residual_histograms", "MIRROR_COLOURS"]
+__all__ = ["plot_walls", "plot_residual_histograms", "plot_formats", "MIRROR_COLOURS"]
 
 #: Colours of the paper's Fig. 9: direct blue, R1 violet, R2 black, L1 red, L2 green.
 MIRROR_COLOURS = {"direct": "tab:blue", "R1": "darkviolet", "R2": "black", "L1": "red",
@@ -21,6 +21,13 @@ def _colour(name: str, i: int) -> str:
     import matplotlib  # noqa: TID251 (lazy, inside a plot function)
 
     return MIRROR_COLOURS.get(name) or matplotlib.colormaps["tab10"](i % 10)
+
+
+def plot_formats() -> list[str]:
+    """File extensions (without the dot) the figures can be saved as."""
+    from matplotlib.figure import Figure  # noqa: TID251 (lazy, inside a plot function)
+
+    return sorted(Figure().canvas.get_supported_filetypes())
 
 
 def _thin(a: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -39,8 +39,6 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from ._args import bounded_float, bounded_int, check_output_path
 from ._runtime_args import add_design_arg
 
@@ -123,6 +121,8 @@ def _read_walls(paths: list[str], design) -> list:
 
 
 def _sim_walls(args) -> list:
+    import numpy as np  # here, not at module level: --help imports no numpy
+
     from ..calibration.synthetic import WallPose
     from ..errors import ParameterError
 
@@ -151,6 +151,8 @@ def _ask(prompt: str, wait: bool) -> None:
 
 def _live_captures(args, design, truth) -> tuple[list, str]:
     """Guided capture: one nod sweep per wall orientation (device, or the simulated sensor)."""
+    import numpy as np  # here, not at module level: --help imports no numpy
+
     from ..calibration.recordings import capture_from_capture
     from ..errors import require
     from ..runtime.session import Session
@@ -214,6 +216,8 @@ def _check_options(args) -> None:
 
 
 def run(args) -> int:
+    import numpy as np  # here, not at module level: --help imports no numpy
+
     from ..calibration.calfile import calibration_from_result, write_calibration
     from ..calibration.fit import calibrate
     from ..calibration.synthetic import with_range_error
@@ -225,6 +229,11 @@ def run(args) -> int:
     if args.out:
         check_output_path(args.out, force=args.force, option="--out")
     if args.plot:
+        from ..calibration.plots import plot_formats
+
+        kinds = plot_formats()  # checked before the fit, not by a traceback after it
+        if Path(args.plot).suffix.lower().lstrip(".") not in kinds:
+            raise ParameterError("--plot", args.plot, "a file name ending in ." + ", .".join(kinds))
         check_output_path(args.plot, force=args.force, option="--plot")
     design = solve(load_design(args.design))
     truth = None
