@@ -6,10 +6,9 @@ use the same values.
 
 from __future__ import annotations
 
-from importlib.resources import files
-from pathlib import Path
 from types import MappingProxyType
 
+from ._light import PAPER_DESIGN, design_resource
 from .geometry import Perturbation
 
 __all__ = ["PAPER_DESIGN", "design_resource", "TABLE_I_PERTURBATIONS", "TRACKING_SPEED_M_S",
@@ -17,22 +16,8 @@ __all__ = ["PAPER_DESIGN", "design_resource", "TABLE_I_PERTURBATIONS", "TRACKING
 
 
 
-def design_resource(name: str) -> Path:
-    """The path of a design file shipped with the package, e.g. ``"urg04lx-paper.toml"`` or
-    ``"scenes/paper-tracking.toml"``.
-
-    The files are package data (``nodlidar/designs`` is the repository's ``design/``
-    directory), found with :mod:`importlib.resources`, so they are there after a wheel
-    install as well as in a checkout, whatever the working directory.
-    """
-    # a real file on disk: setuptools installs package data unzipped (and the editable
-    # install maps the checkout), so the Traversable is a filesystem path.
-    return Path(str(files(__package__).joinpath("designs", *name.split("/"))))
-
-
-#: The paper's build (Section III) as a design file: the default design of every command,
-#: a package resource, so it is found from any directory and after a normal install.
-PAPER_DESIGN = design_resource("urg04lx-paper.toml")
+# design_resource and PAPER_DESIGN are defined in nodlidar._light (no numpy: the CLI
+# parser needs the default design path; issue 16) and re-exported here
 
 #: Paper Table I: the mounting errors of the four mirrors (dalpha [rad], dbeta [rad],
 #: dd [m]), applied with :meth:`nodlidar.geometry.MirrorPatch.perturbed` (conventions.md,

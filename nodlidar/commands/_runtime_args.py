@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from ..errors import ParameterError
 from ..validation import check_number
 from ._args import check_output_path
+
+if TYPE_CHECKING:  # numpy only where used: --help imports no numpy
+    import numpy as np
 
 #: Simulated seconds per wall second. Below 0.01 a sweep of a few simulated seconds takes
 #: minutes (1e-9 hung for ever); above 1000 the emulator cannot keep the pace.
@@ -23,7 +25,7 @@ DESIGN_HELP = "design file (default: the paper's build, design/urg04lx-paper.tom
 
 def add_design_arg(p) -> None:
     """``--design TOML``, defaulting to the paper's build wherever the command runs."""
-    from ..paper import PAPER_DESIGN
+    from .._light import PAPER_DESIGN  # (not paper: --help imports no numpy)
 
     p.add_argument("--design", metavar="TOML", default=str(PAPER_DESIGN), help=DESIGN_HELP)
 
@@ -113,6 +115,8 @@ def add_frame_args(p) -> None:
 
 def pose_matrix(v, name: str) -> np.ndarray:
     """4x4 from x y z [m] roll pitch yaw [deg] (R = Rz(yaw) Ry(pitch) Rx(roll))."""
+    import numpy as np  # here, not at module level: --help imports no numpy
+
     if v is None:
         return np.eye(4)
     if not (len(v) == 6 and all(math.isfinite(x) for x in v)

@@ -31,7 +31,7 @@ from ._runtime_args import add_device_args, session_from_args
 
 
 def register(sub) -> None:
-    from ..tracking.recording import DEFAULT_SENSOR_HEIGHT_M
+    from .._light import DEFAULT_SENSOR_HEIGHT_M  # (--help imports no numpy)
 
     p = sub.add_parser("track", help="detect and track moving objects (recording, live or simulator)",
                        description=__doc__)

@@ -23,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .._light import DEFAULT_SENSOR_HEIGHT_M  # defined without numpy: the CLI parser shows it
 from .simdata import ScanPoints
 
 __all__ = ["DEFAULT_SENSOR_HEIGHT_M", "scans_from_capture", "scans_from_recording",
            "LiveScans"]
 
-DEFAULT_SENSOR_HEIGHT_M = 0.4
 _PLACEHOLDER_M = 1.0  # any valid range: the assembly keeps the beam, its NaN is restored
 
 
