@@ -34,8 +34,10 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m pytest -q -m "not slow"
 
+# every benchmark in a fresh process, the whole set three times: min/median of every figure
+# (ratios against baselines of the same run, peak RSS) in out/bench.json
 bench: $(STAMP)
-	MPLBACKEND=Agg $(PY) benchmarks/run.py
+	MPLBACKEND=Agg $(PY) benchmarks/run.py --repeat 3 --json out/bench.json
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check nodlidar tests benchmarks notebooks

@@ -33,7 +33,7 @@ def rate(fn, n_points: int, min_time: float = 1.0) -> float:
             return n * n_points / dt
 
 
-def main() -> None:
+def main() -> dict[str, float]:
     design = solve(load_design(DESIGN))
     lidar = design.lidar
     model = AssemblyModel.from_design(design)
@@ -74,6 +74,7 @@ def main() -> None:
     print(f"  assemble (nod, mirrors, world): {r_full / 1e6:8.2f} M points/s")
     print(f"  ratio (assemble / bare)       : {r_full / r_bare:8.3f}  "
           f"({r_bare / r_full:.1f}x slower per point)")
+    return {"ratio_vs_bare": r_full / r_bare, "points_per_s": r_full}  # for benchmarks/run.py
 
 
 if __name__ == "__main__":

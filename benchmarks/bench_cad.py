@@ -31,7 +31,7 @@ def best_of(fn, repeat):
     return best
 
 
-def main() -> None:
+def main() -> dict[str, float]:
     import cadquery as cq  # noqa: TID251 (benchmark of the CAD layer)
 
     from nodlidar.cad.export import export_cad
@@ -53,6 +53,8 @@ def main() -> None:
     print(f"export paper build (full):   {t_full:8.2f} s  = {t_full / t_box:7.0f} x baseline"
           f"  ({'OK' if t_full < TARGET_S else 'OVER'} target {TARGET_S:.0f} s)")
     print(f"export without preview:      {t_nopv:8.2f} s  = {t_nopv / t_box:7.0f} x baseline")
+    return {"export_s": t_full, "export_no_preview_s": t_nopv,  # for benchmarks/run.py
+            "ratio_vs_box": t_full / t_box}
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ def best_of(fn, repeat=7, number=1):
     return best
 
 
-def main() -> None:
+def main() -> dict[str, float]:
     spec = load_design(ROOT / "design" / "urg04lx-paper.toml")
     design = solve(spec)
     t_solve = best_of(lambda: solve(spec), repeat=5)
@@ -61,6 +61,8 @@ def main() -> None:
     print(f"BeamModel.points:       {n / t_bm / 1e6:8.2f} M beams/s  (cost ratio {t_bm / t_bare:.2f} x bare)")
     print(f"BeamModel.points + nod: {n / t_bm_nod / 1e6:8.2f} M beams/s  "
           f"(cost ratio {t_bm_nod / t_bare:.2f} x bare)")
+    return {"anchor_solve_s": t_solve, "optimal_solve_s": t_opt,  # for benchmarks/run.py
+            "points_cost_vs_bare": t_bm / t_bare, "points_nod_cost_vs_bare": t_bm_nod / t_bare}
 
 
 if __name__ == "__main__":

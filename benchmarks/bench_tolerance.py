@@ -62,7 +62,7 @@ def run(design, samples: int, **kw):
     return res, samples / dt, dt, mem.peak
 
 
-def main() -> None:
+def main() -> dict[str, float]:
     # numeric arguments only: under ``benchmarks/run.py tolerance`` argv holds benchmark names
     counts = [a for a in sys.argv[1:] if a.isdigit()]
     samples = int(counts[0]) if counts else 40_000
@@ -88,6 +88,8 @@ def main() -> None:
                                         ref.edge_misses)) / samples
     print(f"result storage: {per_sample:.0f} bytes per sample "
           f"({per_sample * 1e6 / 2**20:.0f} MiB for 10^6 samples)")
+    return {"samples_per_s": rate0, "ratio_dask2_vs_dask1": rates[2] / rates[1],  # run.py
+            "in_process_peak_rss_mib": peak0 / 2**20}
 
 
 if __name__ == "__main__":

@@ -44,15 +44,15 @@ GOALS = {
 }
 
 
-def available() -> list[str]:
-    return [p.stem.removeprefix("bench_") for p in sorted(HERE.glob("bench_*.py"))]
+def available(where: Path = HERE) -> list[str]:
+    return [p.stem.removeprefix("bench_") for p in sorted(where.glob("bench_*.py"))]
 
 
-def child(name: str, out: str) -> None:
+def child(name: str, out: str, where: Path = HERE) -> None:
     """Run one benchmark in this (fresh) process and write its figures to ``out``."""
-    sys.path.insert(0, str(HERE))
+    sys.path.insert(0, str(where))
     t0 = time.perf_counter()
-    module = runpy.run_path(str(HERE / f"bench_{name}.py"), run_name=f"bench_{name}")
+    module = runpy.run_path(str(where / f"bench_{name}.py"), run_name=f"bench_{name}")
     figures = module["main"]() or {}
     wall = time.perf_counter() - t0
     # ru_maxrss is in KiB on Linux (bytes on macOS)
@@ -64,13 +64,13 @@ def child(name: str, out: str) -> None:
     Path(out).write_text(json.dumps(res))
 
 
-def run_one(name: str) -> dict[str, float]:
+def run_one(name: str, where: Path = HERE) -> dict[str, float]:
     """One benchmark in a fresh subprocess; its stdout/stderr pass through."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "result.json"
         env = dict(os.environ, MPLBACKEND=os.environ.get("MPLBACKEND", "Agg"))
         proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", name,
-                               str(out)], env=env)
+                               str(out), str(where)], env=env)
         if proc.returncode != 0 or not out.exists():
             print(f"benchmark {name} failed (exit {proc.returncode})", file=sys.stderr)
             return {f"{name}.failed": 1.0}
@@ -95,17 +95,18 @@ def summarise(runs: list[dict[str, float]]) -> dict[str, dict]:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--child"]:
-        child(argv[1], argv[2])
+        child(argv[1], argv[2], Path(argv[3]))
         return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("names", nargs="*", help=f"benchmarks to run (default all: {available()})")
     ap.add_argument("--json", metavar="FILE", help="write min/median/runs of every figure")
     ap.add_argument("--repeat", type=int, default=1, metavar="N", help="runs of the set (>= 1)")
+    ap.add_argument("--dir", type=Path, default=HERE, help=argparse.SUPPRESS)  # tests
     args = ap.parse_args(argv)
-    names = args.names or available()
-    unknown = [n for n in names if n not in available()]
+    names = args.names or available(args.dir)
+    unknown = [n for n in names if n not in available(args.dir)]
     if unknown or args.repeat < 1:
-        print(f"run.py: unknown benchmark(s) {unknown}; choose from {available()}"
+        print(f"run.py: unknown benchmark(s) {unknown}; choose from {available(args.dir)}"
               if unknown else f"run.py: --repeat {args.repeat}: must be >= 1", file=sys.stderr)
         return 2
     runs: list[dict[str, float]] = []
@@ -113,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         res: dict[str, float] = {}
         for name in names:
             print(f"=== {name} (run {i + 1}/{args.repeat}) ===", flush=True)
-            res.update(run_one(name))
+            res.update(run_one(name, args.dir))
         runs.append(res)
     summary = summarise(runs)
     print(f"\n=== summary: {args.repeat} run(s), min / median ===")

@@ -1,0 +1,84 @@
+"""benchmarks/run.py (each benchmark in a fresh process, named figures, peak RSS, min/median
+over --repeat) and the CLI's light start-up (issue 16)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+RUN = ROOT / "benchmarks" / "run.py"
+
+# a benchmark that returns the number of times it has run (a counter file), allocates
+# 64 MiB, and leaves a marker module behind in its interpreter
+BENCH_A = '''
+import sys, types
+from pathlib import Path
+import numpy as np
+
+def main():
+    f = Path(__file__).with_name("count.txt")
+    k = int(f.read_text()) + 1 if f.exists() else 1
+    f.write_text(str(k))
+    block = np.ones(64 * 2**20 // 8)  # touched: resident
+    sys.modules["_bench_marker"] = types.ModuleType("_bench_marker")
+    return {"count": float(k), "sum": float(block.sum())}
+'''
+# run after A: sees A's marker only if both shared one interpreter
+BENCH_B = '''
+import sys
+import numpy  # the same imports as A: the RSS difference is A's block
+
+def main():
+    return {"saw_other_benchmark": float("_bench_marker" in sys.modules)}
+'''
+
+
+def _run(args, cwd):
+    return subprocess.run([sys.executable, str(RUN), *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=300)
+
+
+@pytest.mark.slow
+def test_fresh_process_figures_rss_and_min_median(tmp_path):
+    (tmp_path / "bench_a.py").write_text(BENCH_A)
+    (tmp_path / "bench_b.py").write_text(BENCH_B)
+    out = tmp_path / "out" / "bench.json"
+    p = _run(["--dir", str(tmp_path), "--repeat", "3", "--json", str(out)], tmp_path)
+    assert p.returncode == 0, p.stderr
+    fig = json.loads(out.read_text())["figures"]
+    # three runs of A, in order: 1, 2, 3 -> min 1, median 2 (computed here another way)
+    assert fig["a.count"]["runs"] == [1.0, 2.0, 3.0]
+    assert fig["a.count"]["min"] == 1.0 and fig["a.count"]["median"] == 2.0
+    # every benchmark in its own interpreter: B never sees A's module
+    assert fig["b.saw_other_benchmark"]["runs"] == [0.0, 0.0, 0.0]
+    # peak RSS is the child's own: A holds 64 MiB more than B (an interpreter with numpy
+    # is ~30-60 MiB; 64 MiB of touched pages must show, minus slack for allocator reuse)
+    assert fig["a.peak_rss_mib"]["min"] >= 64
+    assert fig["a.peak_rss_mib"]["min"] - fig["b.peak_rss_mib"]["min"] > 48
+    assert "a.wall_s" in fig and "summary" in p.stdout
+
+
+def test_failing_benchmark_and_bad_arguments(tmp_path):
+    (tmp_path / "bench_bad.py").write_text("def main():\n    raise RuntimeError('boom')\n")
+    p = _run(["--dir", str(tmp_path), "bad"], tmp_path)
+    assert p.returncode == 1 and "benchmark bad failed" in p.stderr
+    p = _run(["--dir", str(tmp_path), "nosuch"], tmp_path)
+    assert p.returncode == 2 and "unknown benchmark" in p.stderr
+    p = _run(["--dir", str(tmp_path), "--repeat", "0", "bad"], tmp_path)
+    assert p.returncode == 2 and "--repeat 0" in p.stderr
+
+
+def test_cli_parser_imports_no_numpy():
+    """``nodlidar --help`` builds the whole parser: it must not import numpy (nor scipy),
+    which cost most of the start-up (issue 16). A fresh interpreter: this one has numpy."""
+    code = ("import sys, nodlidar.cli; nodlidar.cli.build_parser(); "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('numpy', 'scipy')))")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=120, cwd=ROOT)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == "[]"
