@@ -1,4 +1,4 @@
-"""Lidar models against the SCIP reference (../shared/reference/scip2.md)."""
+"""Lidar models against the SCIP reference (tests/data/scip2.md, a copy of the shared reference)."""
 
 import re
 from pathlib import Path
@@ -10,7 +10,7 @@ from numpy.testing import assert_allclose
 from nodlidar.errors import ParameterError
 from nodlidar.lidar import LIDAR_MODELS, lidar_model
 
-SCIP_MD = Path(__file__).resolve().parents[2] / "shared" / "reference" / "scip2.md"
+SCIP_MD = Path(__file__).resolve().parent / "data" / "scip2.md"
 
 
 def _pp_block():
