@@ -56,7 +56,12 @@ def rotate_about_axis(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.
     ``angle`` (n,) [rad] (right hand)."""
     c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
     k = np.asarray(axis, dtype=float)
-    return v * c + np.cross(k, v) * s + np.outer(v @ k, k) * (1.0 - c)
+    # k x v by columns: the products and differences np.cross forms, without its
+    # axis-juggling overhead (the same numbers)
+    k0, k1, k2 = k
+    v0, v1, v2 = v[:, 0], v[:, 1], v[:, 2]
+    kxv = np.stack([k1 * v2 - k2 * v1, k2 * v0 - k0 * v2, k0 * v1 - k1 * v0], -1)
+    return v * c + kxv * s + np.outer(v @ k, k) * (1.0 - c)
 
 
 def measure(true_ranges_m: np.ndarray, model: LidarModel, rng: np.random.Generator | None,
@@ -125,12 +130,26 @@ class ScanTruth:
         return np.where(ok, r, np.nan)
 
 
+def _meets_sphere(origins: np.ndarray, dirs: np.ndarray, centre: np.ndarray,
+                  radius2: float) -> np.ndarray:
+    """(n,) bool: the ray (half-line) from ``origins`` along ``dirs`` (n, 3) meets the ball
+    of squared radius ``radius2`` [m^2] about ``centre`` (3,). Conservative and in float64."""
+    w = centre - origins
+    wd = np.einsum("ij,ij->i", w, dirs)
+    dd = np.einsum("ij,ij->i", dirs, dirs)
+    ww = np.einsum("ij,ij->i", w, w)
+    # squared distance of the centre from the ray's line is ww - wd^2/dd; a ball behind the
+    # origin (wd < 0) is met only if the origin is inside it
+    return (ww * dd - wd * wd <= radius2 * dd) & ((wd >= 0) | (ww <= radius2))
+
+
 class _MeshCaster:
     """One mesh with an embree intersector; distances recomputed in float64.
 
-    ``cull=True`` first drops the rays that miss the mesh's bounding box (a slab test in
-    float64 with a 1 mm margin, far above embree's float32 error, so no ray that embree
-    would report is dropped): a mover or a mirror is seen by few of the rays. Each ray is
+    ``cull=True`` first drops the rays that miss the mesh's bounding sphere (the sphere
+    about the bounding box's centre through its corners, in float64, 1 mm larger: far above
+    embree's float32 error, so no ray that embree would report is dropped): a mover or a
+    mirror is seen by few of the rays. Each ray is
     cast on its own by embree, so casting a subset gives the same triangle per ray.
     """
 
@@ -153,19 +172,13 @@ class _MeshCaster:
         self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
         self.cull = bool(cull)
         self._offset = np.einsum("ij,ij->i", self.v0, self.normals)  # plane: x . n = offset
-        self._lo = np.asarray(mesh.bounds[0], dtype=float) - self._MARGIN_M
-        self._hi = np.asarray(mesh.bounds[1], dtype=float) + self._MARGIN_M
+        lo, hi = np.asarray(mesh.bounds, dtype=float)
+        self._centre = (lo + hi) / 2
+        self._radius2 = (float(np.linalg.norm(hi - lo)) / 2 + self._MARGIN_M) ** 2
 
     def may_hit(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """(n,) bool: the ray (half-line) meets the mesh's bounding box (with margin)."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / dirs
-            t1 = (self._lo - origins) * inv
-            t2 = (self._hi - origins) * inv
-        # fmin/fmax skip the NaN of a zero direction component on the box face (no bound)
-        tmin = np.fmin(t1, t2).max(axis=1)
-        tmax = np.fmax(t1, t2).min(axis=1)
-        return (tmax >= 0.0) & (tmax >= tmin)
+        """(n,) bool: the ray (half-line) meets the mesh's bounding sphere (with margin)."""
+        return _meets_sphere(origins, dirs, self._centre, self._radius2)
 
     def _first(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Triangle index of each ray's first hit (-1 none): ``intersects_first``."""
@@ -245,6 +258,15 @@ class SceneSimulator:
                                                      process=False), cull=True)
                          for p in self.patches]
         self._head_cache: dict[tuple[float, float], tuple] = {}
+        # each mirror's beam window: a sphere centred on its hinge axis through its corners
+        # (1 mm larger), so it holds the patch turned by any lift angle
+        self._windows = []
+        for p in self.patches:
+            pivot, axis = p.origin_ + p.hinge_z * p.up_, p.along_
+            q = p.corners()
+            c = pivot + ((q.mean(axis=0) - pivot) @ axis) * axis
+            r = float(np.max(np.linalg.norm(q - c, axis=1))) + _MeshCaster._MARGIN_M
+            self._windows.append((c, r * r))
 
     # -- pieces ------------------------------------------------------------------------
     def beam_times(self, t_scan_s: float, steps: np.ndarray | None = None) -> np.ndarray:
@@ -284,22 +306,32 @@ class SceneSimulator:
             best_m = np.full(n, -1)
             best_nrm = np.zeros((n, 3))
             for i, p in enumerate(self.patches):
+                # the mirror's beam window: only rays that meet its sphere about the hinge
+                # (which holds the patch at every lift angle, and which turning a ray about
+                # the hinge does not change) are turned and cast
+                centre, r2 = self._windows[i]
+                idx = np.flatnonzero(alive & (last != i) & _meets_sphere(o, d, centre, r2))
+                if not len(idx):
+                    continue
+                oi, di = o[idx], d[idx]
                 # the lift motor turns the side's mirrors by -sign(hinge_z) * lift_angle * f
                 # (conventions.md); intersect the unturned patch with the ray turned back
-                ang = -np.sign(p.hinge_z) * self.lift_angle_rad * frac[self.mirror_sides[i]]
+                ang = -np.sign(p.hinge_z) * self.lift_angle_rad * frac[self.mirror_sides[i]][idx]
                 if np.any(ang != 0):
                     pivot = p.origin_ + p.hinge_z * p.up_
-                    ol = pivot + rotate_about_axis(o - pivot, p.along_, -ang)
-                    dl = rotate_about_axis(d, p.along_, -ang)
-                    nrm = rotate_about_axis(np.broadcast_to(p.normal_, (n, 3)), p.along_, ang)
+                    ol = pivot + rotate_about_axis(oi - pivot, p.along_, -ang)
+                    dl = rotate_about_axis(di, p.along_, -ang)
+                    nrm = rotate_about_axis(np.broadcast_to(p.normal_, (len(idx), 3)),
+                                            p.along_, ang)
                 else:
-                    ol, dl, nrm = o, d, np.broadcast_to(p.normal_, (n, 3))
+                    ol, dl, nrm = oi, di, np.broadcast_to(p.normal_, (len(idx), 3))
                 t, _ = self._mirrors[i].cast(ol, dl)
-                t = np.where(alive & (last != i) & (t > 0), t, np.inf)
-                closer = t < best_t
-                best_t = np.where(closer, t, best_t)
-                best_m = np.where(closer, i, best_m)
-                best_nrm = np.where(closer[:, None], nrm, best_nrm)
+                t = np.where(t > 0, t, np.inf)
+                closer = t < best_t[idx]
+                sel = idx[closer]
+                best_t[sel] = t[closer]
+                best_m[sel] = i
+                best_nrm[sel] = nrm[closer]
             hit = np.isfinite(best_t)
             if not np.any(hit):
                 break
