@@ -201,8 +201,10 @@ class _MeshCaster:
         if len(hit):
             th = tri[hit]
             n = self.normals[th]
-            num = self._offset[th] - np.einsum("ij,ij->i", origins[hit], n)
-            den = np.einsum("ij,ij->i", dirs[hit], n)
+            # (every ray hits the enclosing room: no gather of the rays then)
+            o, d = (origins, dirs) if len(hit) == n_rays else (origins[hit], dirs[hit])
+            num = self._offset[th] - np.einsum("ij,ij->i", o, n)
+            den = np.einsum("ij,ij->i", d, n)
             with np.errstate(divide="ignore", invalid="ignore"):
                 t[hit] = np.where(np.abs(den) > 1e-12, num / den, np.inf)
         return t, tri
