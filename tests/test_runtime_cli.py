@@ -28,7 +28,10 @@ FAST = ["--sim-rate", "5"]
 
 
 def run(capsys, *argv) -> tuple[int, str, str]:
-    code = main(list(argv))
+    try:
+        code = main(list(argv))
+    except SystemExit as exc:  # argparse's own usage errors (bounded option types) exit 2
+        code = exc.code
     out = capsys.readouterr()
     return code, out.out, out.err
 
