@@ -240,3 +240,31 @@ def test_reflected_windows_alone_are_not_biased_for_a_slow_mover(design):
         print("window", m, sel.sum(), est.v_m_s, np.degrees(est.heading_rad))
         assert abs(est.v_m_s - 0.05) <= 0.004
         assert abs(np.degrees(est.heading_rad) - 45.0) <= 2.0
+
+
+class _OneBlob:
+    """Stub of Segmented: scan k with one 20-point blob moving at 0.13 m/s along y."""
+
+    def __init__(self, k):
+        from nodlidar.tracking.simdata import ScanPoints
+
+        pts = np.random.default_rng(k).normal([2.0, 0.013 * k, 0.5], 0.02, (20, 3))
+        n = len(pts)
+        self.scan = ScanPoints(k, np.arange(n), np.full(n, k * 0.1), np.full(n, -1),
+                               np.ones(n), pts, pts, pts, np.zeros(n))
+
+    def objects(self):
+        return [np.arange(20)]
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_track_memory_bounded_by_the_window(keep):
+    from nodlidar.tracking.tracker import Tracker, TrackerConfig
+
+    trk = Tracker(TrackerConfig(window_scans=5, keep_points=keep))
+    for k in range(12):
+        st = trk.update(_OneBlob(k))
+    (tr,) = trk.all_tracks()
+    kept = [len(p) for p in tr.points]
+    assert len(kept) == 12 and st[0].n_points == 240  # counts every point ever taken
+    assert kept == ([20] * 12 if keep else [0] * 7 + [20] * 5)

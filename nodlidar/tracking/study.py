@@ -27,6 +27,7 @@ always within 0.01 m/s. The paper's 7 vs 9 is not reproduced by either.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -139,7 +140,8 @@ def run_config(design, *, mirrors_deployed: bool, n_scans: int = 38, seed: int =
         (the paper's "reliable localisation"), so every scan is placed in the world by it.
     """
     segment = segment or SegmentConfig()
-    tracker = tracker or TrackerConfig()
+    # the study re-estimates from all the track's points after each scan count
+    tracker = dataclasses.replace(tracker or TrackerConfig(), keep_points=True)
     scans = simulate_scans(design, n_scans, mirrors_deployed=mirrors_deployed, seed=seed,
                            noise=noise, scene=_driving(scene, robot_velocity_m_s))
     segs = segment_batch(scans, segment, design.lidar.range_sigma_m)

@@ -74,6 +74,11 @@ class TrackerConfig:
     entropy, sigma_m, voxel_m, max_points, voxel_max_points, warm_search_m_s, warm_voxel_grid
         The entropy refinement (:func:`refine_motion`); ``max_points`` (Rényi) and
         ``voxel_max_points`` cap the points one refinement uses (bounded work per scan).
+    keep_points : bool
+        Keep every scan's points per track (an analysis of the whole track, e.g. the
+        mirror study's estimate after each scan count); by default only the last
+        ``window_scans`` scans' points are kept, so a long-lived track's memory stays
+        bounded (the per-scan centroids and times are kept).
     position_sigma_m : float
         Measurement noise of the centroid [m] (the visible part of an object changes with
         the nod and the mirror window: a 0.4 m box's visible centroid moves by ~0.2 m).
@@ -100,6 +105,7 @@ class TrackerConfig:
     velocity_sigma_m_s: float = 0.01
     accel_sigma_m_s2: float = 0.05
     max_points: int = 300
+    keep_points: bool = False
     voxel_max_points: int = 1200
     warm_search_m_s: float = 0.03
     # voxel entropy, warm start: grid-search levels (points per axis) over +-warm_search_m_s;
@@ -195,7 +201,6 @@ class _Track:
     motion: MotionEstimate | None = None
     coarse: MotionEstimate | None = None
     state: Any = None  # stonesoup GaussianState (x, vx, y, vy)
-    history: list = field(default_factory=list)  # TrackState after every update
 
     @property
     def cov(self) -> np.ndarray:
@@ -424,7 +429,6 @@ class Tracker:
             self._update(tr, prior, c, None if m is None else m.velocity,
                          None if m is None else m.cov)
             st = self._state(tr)
-            tr.history.append(st)
             changed.append(st)
         # new clusters within merge_m of each other are pieces of one new object
         groups: list[list[int]] = []
@@ -445,7 +449,6 @@ class Tracker:
             self._add(tr, scan, idx, c, t)
             tr.state = self._birth(c, t)
             st = self._state(tr)
-            tr.history.append(st)
             changed.append(st)
         # two tracks updated in this scan within merge_m of each other follow one object (a
         # box's faces seen through different windows, born apart): the younger one ends
@@ -478,11 +481,18 @@ class Tracker:
         tr.centroids.append(np.asarray(c, float))
         tr.t_centroids.append(float(t))
         tr.last_scan = scan.scan
+        w = self.config.window_scans
+        if not self.config.keep_points and len(tr.points) > w:
+            # outside the refinement's window: emptied, not removed (lists stay aligned
+            # with tr.scans and tr.centroids)
+            for lst in (tr.points, tr.times, tr.mirrors, tr.truth):
+                old = lst[-w - 1]
+                lst[-w - 1] = None if old is None else old[:0]
 
     def states(self) -> list[TrackState]:
         """Current states of the live tracks."""
         return [self._state(tr) for tr in self.tracks.values()]
 
     def all_tracks(self) -> list:
-        """Live and ended internal tracks (for analysis: points, times, centroids, history)."""
+        """Live and ended internal tracks (for analysis: points, times, centroids)."""
         return list(self.tracks.values()) + self.ended
