@@ -118,7 +118,11 @@ def run(args) -> int:
     if "calibrate" not in args.skip:
         steps.start("calibration against three simulated walls (paper Section IV)")
         cal = out / "calibration.toml"
-        command(["calibrate", "--design", design_arg, "--sim", "--perturb", "table1", "--force",
+        # the demo owns its folder: it clears its last calibration rather than passing
+        # calibrate --force, which would also write a calibration whose quality gates failed
+        for old in (cal, out / "calibration.png"):
+            old.unlink(missing_ok=True)
+        command(["calibrate", "--design", design_arg, "--sim", "--perturb", "table1",
                  "--out", str(cal), "--plot", str(out / "calibration.png")])
         steps.output("calibration", cal, echo=False)
         steps.output("calibration plot", out / "calibration.png", echo=False)
@@ -129,7 +133,7 @@ def run(args) -> int:
 
     if "study" not in args.skip:
         steps.start("moving-object tracking: mirrors deployed vs lifted (paper Section VI)")
-        command(["study", "mirrors", "--design", design_arg, "--out", str(out / "study")])
+        command(["study", "mirrors", "--design", design_arg, "--force", "--out", str(out / "study")])
         steps.output("tracking study", out / "study" / "study_mirrors.md", echo=False)
 
     steps.done()
