@@ -2,9 +2,9 @@
 option (or file field), no traceback, and no hang.
 
 Runs the installed console script in a subprocess (what a user runs; a hang is caught by
-the timeout instead of stalling the suite). Cases that fail because of a command owned by
-someone else are ``xfail(strict=True)`` naming the owner, so a fix turns them into errors
-to un-mark (issue 15).
+the timeout instead of stalling the suite). A case that cannot be fixed yet goes into
+``XFAIL`` as ``xfail(strict=True)`` naming why, so its fix turns it into an error to un-mark
+(issue 15); none is left.
 """
 
 from __future__ import annotations
@@ -29,10 +29,6 @@ BASE = Path(PAPER_DESIGN).read_text()
 #: A clean refusal takes a couple of seconds (imports, maybe a design solve); far above
 #: that on a loaded machine, but a hang (the bug) never returns at all.
 TIMEOUT_S = 60
-
-
-def _owned(owner: str, why: str):
-    return pytest.mark.xfail(strict=True, reason=f"owner: {owner} - {why}")
 
 
 @pytest.fixture(scope="module")
@@ -147,28 +143,7 @@ CASES = [
 
 #: Cases that still fail, by the file's owner (issue 15; the lead reconciles); keyed by
 #: (command, argv joined by spaces).
-_CAL = "calibration (commands/calibrate.py)"
-_CLI = "CLI conventions (commands/report.py)"
-_SCIP = "SCIP side (runtime/urg.py)"
-_TRK = "tracking (commands/study.py, commands/track.py)"
-XFAIL: dict[tuple[str, str], pytest.MarkDecorator] = {
-    ("info", "--port foo://x --servo-port foo://y"):
-        _owned(_SCIP, "--port foo://x: pyserial's ValueError traceback"),
-    ("scan", "--port foo://x --servo-port foo://y"):
-        _owned(_SCIP, "--port foo://x: pyserial's ValueError traceback"),
-    ("study", "mirrors --scans 1000000000000"):
-        _owned(_TRK, "--scans 10**12 accepted: hangs simulating every scan"),
-    ("track", "--sim --scans 1000000000000"):
-        _owned(_TRK, "--scans 10**12 accepted: hangs simulating every scan"),
-    ("report", f"{P} --samples 100000000000"):
-        _owned(_CLI, "names tolerance.samples, not --samples (no bound on --samples)"),
-    ("report", f"{P} --scheduler not a url"): _owned(_CLI, "names scheduler, not --scheduler"),
-    ("report", f"{P} --scheduler {{HTTP}} --out {{T}}/rep"):
-        _owned(_CLI, "names scheduler, not --scheduler"),
-    ("view", "--sim-rate 1e-9"):
-        _owned("nodlidar view (dcb26b9)", "prints its URL line before the device options "
-               "are checked (call _runtime_args.check_sim_options first)"),
-}
+XFAIL: dict[tuple[str, str], pytest.MarkDecorator] = {}
 
 
 def _cases():

@@ -82,6 +82,8 @@ def check_sim_options(args) -> None:
                  unit="(simulated seconds per wall second)")
     if getattr(args, "port", None) is None and getattr(args, "servo_port", None) is None:
         return
+    for opt, url in (("--port", args.port), ("--servo-port", getattr(args, "servo_port", None))):
+        check_port_url(url, opt)
     given = [("--sim-rate", args.sim_rate, args.sim_rate != 1.0),
              ("--sim-transport", args.sim_transport, args.sim_transport != "pty"),
              ("--scene", args.scene, args.scene != getattr(args, "_scene_default", None)),
@@ -91,6 +93,22 @@ def check_sim_options(args) -> None:
         if on:
             raise ParameterError(opt, value, "only with the simulated sensor (it does not apply "
                                              "with --port/--servo-port)")
+
+
+def check_port_url(url: str | None, option: str) -> None:
+    """Refuse a port URL whose scheme pyserial has no handler for (``foo://x``) before any
+    work: pyserial would raise a bare ``ValueError`` when the port is opened."""
+    if url is None or "://" not in url:
+        return  # a device path: the system says whether it exists when it is opened
+    import importlib.util
+    import re
+
+    scheme = url.split("://", 1)[0].lower()
+    known = bool(re.fullmatch(r"[a-z][a-z0-9_]*", scheme)) and \
+        importlib.util.find_spec(f"serial.urlhandler.protocol_{scheme}") is not None
+    if not known:
+        raise ParameterError(option, url, "a device path or a pyserial URL "
+                                          "(socket://host:port, rfc2217://host:port, loop://)")
 
 
 def sim_perturbations(name: str):

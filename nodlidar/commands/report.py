@@ -8,6 +8,7 @@ other placement method, and writes ``report.html``, ``report.md`` (figures in
 
 from __future__ import annotations
 
+from .._light import MAX_SAMPLES  # (not analysis.tolerance: --help imports no numpy)
 from ._args import add_force_arg, bounded_int
 
 
@@ -16,7 +17,8 @@ def register(sub) -> None:
                        description=__doc__)
     p.add_argument("design", help="design TOML file, e.g. design/urg04lx-paper.toml")
     p.add_argument("--out", help="output directory (default out/report/<design name>/)")
-    p.add_argument("--samples", type=bounded_int(1), help="Monte Carlo samples (default: [tolerance])")
+    p.add_argument("--samples", type=bounded_int(1, MAX_SAMPLES),
+                   help=f"Monte Carlo samples, 1 .. {MAX_SAMPLES} (default: [tolerance])")
     p.add_argument("--seed", type=bounded_int(0), help="Monte Carlo seed (default: [tolerance])")
     p.add_argument("--workers", type=bounded_int(0),
                    help="0: in process; N: a local Dask cluster of N worker processes "
@@ -53,14 +55,11 @@ def tqdm_progress(desc: str):
 
 def run(args) -> int:
     from ..analysis.report import compute_report, default_out_dir, write_report
-    from ..errors import ParameterError
     from ..spec import load_design
     from ._args import check_output_path
+    from .tolerance import check_monte_carlo_options
 
-    if args.samples is not None and args.samples < 1:
-        raise ParameterError("--samples", args.samples, "an integer >= 1")
-    if args.workers is not None and args.workers < 0:
-        raise ParameterError("--workers", args.workers, "an integer >= 0")
+    check_monte_carlo_options(args)  # the same options as nodlidar tolerance
     spec = load_design(args.design)
     if args.out is None:   # the default place: out/report/ is ours to create
         default_out_dir(spec).parent.mkdir(parents=True, exist_ok=True)

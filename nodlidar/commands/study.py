@@ -52,7 +52,8 @@ def run(args) -> int:
     from ..tracking import study
     from ._args import check_output_path
 
-    require(args.scans >= 4, "--scans", args.scans, ">= 4")
+    # each run simulates its scans up front: memory grows with --scans
+    require(4 <= args.scans <= 20_000, "--scans", args.scans, "4 .. 20000")
     rv = tuple(args.robot_velocity)
     require(all(math.isfinite(v) and abs(v) <= 1.0 for v in rv), "--robot-velocity", rv,
             "two finite speeds within +-1 m/s")

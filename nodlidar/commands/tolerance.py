@@ -30,15 +30,13 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
-    from ..analysis.tolerance import monte_carlo, sensitivities
+def check_monte_carlo_options(args) -> None:
+    """``--samples``/``--workers``/``--scheduler`` (shared with ``nodlidar report``), checked
+    before any work, in the options' own names."""
     from ..errors import ParameterError
-    from ..solver import solve
-    from ..spec import load_design
-    from .report import tqdm_progress
 
-    if args.samples is not None and args.samples < 1:
-        raise ParameterError("--samples", args.samples, "an integer >= 1")
+    if args.samples is not None and not 1 <= args.samples <= MAX_SAMPLES:
+        raise ParameterError("--samples", args.samples, f"an integer in 1 .. {MAX_SAMPLES}")
     if args.workers is not None and args.workers < 0:
         raise ParameterError("--workers", args.workers, "an integer >= 0")
     if args.scheduler is not None and args.workers is not None:  # would be ignored
@@ -51,6 +49,16 @@ def run(args) -> int:
             _check_scheduler(args.scheduler)
         except ParameterError as exc:
             raise ParameterError("--scheduler", exc.value, exc.allowed) from None
+
+
+def run(args) -> int:
+    from ..analysis.tolerance import monte_carlo, sensitivities
+    from ..errors import ParameterError
+    from ..solver import solve
+    from ..spec import load_design
+    from .report import tqdm_progress
+
+    check_monte_carlo_options(args)
     design = solve(load_design(args.design))
     progress, close = tqdm_progress("Monte Carlo")
     try:

@@ -89,6 +89,10 @@ def _live(args, step) -> None:
           f"{s.model.calibration_id})", file=sys.stderr)
 
 
+MAX_SIM_SCANS = 20_000     # simulated up front: ~35 min of sensor time
+MAX_LIVE_SCANS = 100_000   # 2.8 h at 10 Hz
+
+
 def run(args) -> int:
     from ..errors import require
     from ..solver import solve
@@ -96,7 +100,10 @@ def run(args) -> int:
     from ..tracking.segment import OnlineSegmenter
     from ..tracking.tracker import Tracker, TrackerConfig
 
-    require(args.scans >= 1, "--scans", args.scans, ">= 1")
+    # the simulator makes every scan up front (memory grows with --scans); live and recorded
+    # scans stream, but a run still ends (2.8 h at 10 Hz)
+    hi = MAX_SIM_SCANS if args.sim else MAX_LIVE_SCANS
+    require(1 <= args.scans <= hi, "--scans", args.scans, f"1 .. {hi}")
     require(math.isfinite(args.sensor_height), "--sensor-height", args.sensor_height,
             "a finite height [m]")
     if args.port is not None or args.servo_port is not None:

@@ -20,7 +20,7 @@ import threading
 
 from ._args import add_force_arg, bounded_float, bounded_int, check_output_path
 from ._output import status
-from ._runtime_args import add_device_args, session_from_args
+from ._runtime_args import add_device_args, check_sim_options, session_from_args
 
 
 def register(sub) -> None:
@@ -62,6 +62,7 @@ def run(args) -> int:
                              "either --sim (the simulated sensor) or the device ports")
     if args.mcap is not None:
         check_output_path(args.mcap, force=args.force, option="--mcap")
+    check_sim_options(args)  # before the URL line: a refused option is then the only line
     sink = FoxgloveSink(host=args.host, port=args.ws_port, mcap=args.mcap, overwrite=args.force)
     stop = threading.Event()
     url = sink.start()
