@@ -33,7 +33,8 @@ The runtime applies it as ``AssemblyModel.from_design(design, cal.perturbations,
 and records ``.id`` with every cloud; ``cal.perturbations`` carries ``ambiguous_steps``
 (:class:`CalibratedPerturbations`), which the assembly drops. A file made for another
 design (different geometric hash) is refused. The lidar's range model, when fitted, is
-stored and reported; the runtime assembly does not apply it yet.
+carried the same way (``cal.perturbations.range_offset_m``/``range_scale``) and inverted by
+the runtime assembly before projection.
 """
 
 from __future__ import annotations
@@ -56,13 +57,20 @@ __all__ = ["Calibration", "CalibratedPerturbations", "calibration_from_result",
 
 class CalibratedPerturbations(dict):
     """Mirror name -> Perturbation, plus ``ambiguous_steps``: the lidar steps whose mirror
-    assignment is uncertain under this calibration (the runtime assembly drops them)."""
+    assignment is uncertain under this calibration (the runtime assembly drops them), and
+    the lidar's fitted range model ``r_measured = (1 + range_scale) r + range_offset_m``
+    (zero when not fitted; the runtime assembly inverts it)."""
 
     ambiguous_steps: tuple[int, ...] = ()
+    range_offset_m: float = 0.0
+    range_scale: float = 0.0
 
-    def __init__(self, perturbations=(), ambiguous_steps=()):
+    def __init__(self, perturbations=(), ambiguous_steps=(), range_offset_m: float = 0.0,
+                 range_scale: float = 0.0):
         super().__init__(perturbations)
         self.ambiguous_steps = tuple(int(s) for s in ambiguous_steps)
+        self.range_offset_m = float(range_offset_m)
+        self.range_scale = float(range_scale)
 
 
 @dataclass(frozen=True)
@@ -117,7 +125,9 @@ class Calibration:
     def __post_init__(self) -> None:
         # the runtime takes the mirrors and the beams to drop from one object
         object.__setattr__(self, "perturbations",
-                           CalibratedPerturbations(self.perturbations, self.ambiguous_steps))
+                           CalibratedPerturbations(self.perturbations, self.ambiguous_steps,
+                                                   self.intrinsics.get("range_offset_m", 0.0),
+                                                   self.intrinsics.get("range_scale", 0.0)))
 
     def to_dict(self) -> dict[str, Any]:
         mirrors: dict[str, Any] = {}

@@ -66,7 +66,7 @@ class PointCloud:
     scan : (n,) int
         Index of the scan the point came from (in the assembled batch / recording).
     range_m : (n,) float
-        Measured range (total path length) [m].
+        Range (total path length) [m]; with a calibrated range model, the corrected one.
     frame : str
         ``"sensor"``, ``"robot"`` or ``"world"``.
     design_name, design_hash : str
@@ -308,6 +308,9 @@ class AssemblyModel:
         mirror or the housing, so one reflection does not describe it; such points are
         dropped and counted as ``blocked``).
     design_name, design_hash, calibration_id : str
+    range_offset_m, range_scale : float
+        The lidar's calibrated range model ``r_measured = (1 + range_scale) r +
+        range_offset_m`` [m, -]; :func:`assemble` inverts it before projecting (0, 0: none).
     """
 
     deployed: BeamModel
@@ -317,6 +320,8 @@ class AssemblyModel:
     design_name: str
     design_hash: str
     calibration_id: str = "none"
+    range_offset_m: float = 0.0
+    range_scale: float = 0.0
 
     @classmethod
     def from_design(cls, design: Design,
@@ -333,7 +338,9 @@ class AssemblyModel:
         ``ambiguous_steps`` (default: the calibration's, ``perturbations.ambiguous_steps``
         of a loaded calibration file): steps whose mirror is uncertain within the
         calibration's errors; they are not ``clear``, so their points are dropped (counted
-        as ``blocked``) rather than put on a ray they may not have taken.
+        as ``blocked``) rather than put on a ray they may not have taken. A loaded
+        calibration's range model (``perturbations.range_offset_m``/``range_scale``) is
+        kept too.
         """
         from ..beams import BeamModel
         from ..calibration.fit import design_hash
@@ -352,9 +359,15 @@ class AssemblyModel:
             design.lidar.check_step(amb, "ambiguous_steps")
             clear = clear.copy()
             clear[amb - design.lidar.step_min] = False
+        offset = float(getattr(perturbations, "range_offset_m", 0.0))
+        scale = float(getattr(perturbations, "range_scale", 0.0))
+        require(np.isfinite(offset) and abs(offset) < 1.0, "range_offset_m", offset,
+                "a finite offset within +-1 m")
+        require(np.isfinite(scale) and abs(scale) < 0.5, "range_scale", scale,
+                "a finite scale error within +-0.5")
         return cls(deployed, design.beam_model(perts, mirrors_deployed=False), side,
                    clear, design.spec.name, design_hash(design.spec),
-                   calibration_id if perts else "none")
+                   calibration_id if (perts or offset or scale) else "none", offset, scale)
 
     @property
     def lidar(self):
@@ -460,6 +473,8 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
     n_err = int(n_beams - ok.sum())
     idx = np.flatnonzero(ok)
     steps, r, scan_i = steps[idx], r[idx], np.asarray(scans.scan)[idx]
+    if model.range_offset_m or model.range_scale:  # the calibrated lidar range model, inverted
+        r = (r - model.range_offset_m) / (1.0 + model.range_scale)
     t = lidar.beam_time_s(np.asarray(scans.scan_time_s, float)[scan_i], steps)
 
     if isinstance(nod, (int, float)):
