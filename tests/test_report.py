@@ -213,3 +213,23 @@ def test_markdown_cell_escaping():
     doc.table(heads, rows)
     tables = _Tables(MarkdownIt("commonmark").enable("table").render("\n".join(doc.m))).tables
     assert tables == [[heads, ["1|2", "ends with \\", "two lines"], ["x", "", "\\|"]]]
+
+
+def test_report_has_the_bill_of_materials(report_dir):
+    """The report lists one glass pane per mirror, sized by the solved patch length and the
+    design file's glass height and thickness (read here from the report's own mirror table
+    and the TOML it wrote), plus a lift servo per side."""
+    import tomllib
+
+    summary = json.loads((report_dir / "report.json").read_text())
+    spec = tomllib.loads((report_dir / "urg04lx-paper.toml").read_text())
+    bom = {r["item"]: r for r in summary["bill_of_materials"]}
+    h, t = spec["mirror"]["glass_height_m"] * 1e3, spec["mirror"]["glass_thickness_m"] * 1e3
+    for m in summary["mirrors"]:
+        dims = re.search(r"([\d.]+) x ([\d.]+) x ([\d.]+) mm", bom[f"glass {m['name']}"]["spec"])
+        # printed to 0.1 mm
+        assert [float(x) for x in dims.groups()] == pytest.approx(
+            [m["length_m"] * 1e3, h, t], abs=0.051)
+    assert bom["lift servo"]["qty"] == 2
+    md = (report_dir / "report.md").read_text()
+    assert "## Bill of materials" in md and "| glass L1 |" in md

@@ -390,6 +390,17 @@ def write_report(data: ReportData, out_dir: str | Path) -> ReportPaths:
 
         design_space = report_section(data.exploration, doc, put)
 
+    from ..cad.params import mount_params_from_spec
+    from ..cad.printable import bill_of_materials
+
+    doc.heading("Bill of materials")
+    bom = bill_of_materials(design, mount_params_from_spec(spec))
+    doc.para("What to order for the mirror mounts (from the solved mirrors and the [cad] "
+             "section). The screws and dowels that join a base split to fit the print bed "
+             "depend on the cut CAD and are listed by `nodlidar cad` in its bom.md.")
+    doc.table(["item", "spec", "qty", "note"], [[r["item"], r["spec"], r["qty"], r["note"]]
+                                                for r in bom])
+
     doc.heading("Design file")
     doc.code(toml_text)
 
@@ -412,6 +423,7 @@ def write_report(data: ReportData, out_dir: str | Path) -> ReportPaths:
         "tolerance": {"spec": t.to_dict(), "n_samples": tr.n_samples, "table": trows},
         "sensitivities": data.sensitivity.table(),
         "design_space": design_space,
+        "bill_of_materials": bom,
     }
     json_path = out / "report.json"
     json_path.write_text(json.dumps(summary, indent=2, default=float))
