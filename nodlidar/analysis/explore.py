@@ -417,36 +417,10 @@ def explore(spec: DesignSpec, sweeps: list[Sweep] | tuple[Sweep, ...], *,
 
 def _dask_map(base, chunks, *, workers, scheduler, client, processes):
     """Yield ``(chunk index, rows)`` as chunks finish (the tolerance module's cluster way)."""
-    import os
+    from .tolerance import dask_map
 
-    from distributed import Client, as_completed
-
-    from .tolerance import SCHEDULER_TIMEOUT_S, _check_scheduler, _local_cluster
-
-    own_cluster = own_client = None
-    try:
-        if client is None:
-            if scheduler is not None:
-                _check_scheduler(scheduler)
-                try:
-                    client = own_client = Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
-                except (OSError, TimeoutError) as exc:
-                    raise ParameterError("scheduler", scheduler,
-                                         f"a running Dask scheduler ({str(exc).splitlines()[0]})") from None
-            else:
-                own_cluster = _local_cluster(workers or min(os.cpu_count() or 1, 8), processes)
-                client = own_client = Client(own_cluster)
-        base_f = client.scatter(base, broadcast=True)
-        futures = {client.submit(_run_chunk, base_f, c, pure=False): i
-                   for i, c in enumerate(chunks)}
-        for fut in as_completed(futures):
-            yield futures[fut], fut.result()
-            fut.release()
-    finally:
-        if own_client is not None:
-            own_client.close()
-        if own_cluster is not None:
-            own_cluster.close()
+    yield from dask_map(_run_chunk, base, [(c,) for c in chunks], workers=workers,
+                        scheduler=scheduler, client=client, processes=processes)
 
 
 def report_section(result: ExploreResult, doc: Any, put: Callable[[str, str, Any], None]) -> dict:

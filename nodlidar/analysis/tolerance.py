@@ -93,6 +93,7 @@ __all__ = [
     "trace_samples",
     "ToleranceResult",
     "monte_carlo",
+    "dask_map",
     "SensitivityResult",
     "sensitivities",
     "PARAMETERS",
@@ -812,6 +813,20 @@ def _check_scheduler(address: Any, timeout_s: float = SCHEDULER_TIMEOUT_S) -> No
 
 def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
     """Yield ``(chunk index, result)`` as chunks finish on a Dask cluster."""
+    yield from dask_map(_run_chunk, prob, list(zip(sizes, seeds, strict=True)), workers=workers,
+                        scheduler=scheduler, client=client, processes=processes)
+
+
+def dask_map(fn, shared, args, *, workers=None, scheduler=None, client=None, processes=True):
+    """Yield ``(i, fn(shared, *args[i]))`` as the tasks finish on a Dask cluster.
+
+    The cluster is the caller's ``client``, or an existing ``scheduler`` (its address
+    checked first, so a wrong one is one line, not a hang), or a local cluster of
+    ``workers`` started here; what is started here is closed here, also when the caller
+    stops early or Ctrl-C arrives (quietly: the one-line reason is the exception raised).
+    ``shared`` is scattered once to every worker. Used by the Monte Carlo and by
+    :mod:`nodlidar.analysis.explore`.
+    """
     from distributed import Client, as_completed
 
     own_cluster = own_client = None
@@ -830,20 +845,19 @@ def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
                 n = workers or min(os.cpu_count() or 1, 8)
                 own_cluster = _local_cluster(n, processes)
                 client = own_client = Client(own_cluster)
-        prob_f = client.scatter(prob, broadcast=True)
-        futures = {client.submit(_run_chunk, prob_f, n, s, pure=False): i
-                   for i, (n, s) in enumerate(zip(sizes, seeds, strict=True))}
+        shared_f = client.scatter(shared, broadcast=True)
+        futures = {client.submit(fn, shared_f, *a, pure=False): i for i, a in enumerate(args)}
         for fut in as_completed(futures):
             i = futures[fut]
             yield i, fut.result()
             fut.release()
-    except BaseException:  # Ctrl-C, a failed chunk, the caller stopping early
+    except BaseException:  # Ctrl-C, a failed task, the caller stopping early
         interrupted = True
         raise
     finally:
         # Torn down mid-run, the in-process scheduler logs a CRITICAL traceback for every
         # task it can no longer report to the closed client: cancel first and keep Dask
-        # quiet while closing (the one-line reason is the exception being raised).
+        # quiet while closing.
         with _logging_disabled() if interrupted else contextlib.nullcontext():
             if interrupted and client is not None and futures:
                 with contextlib.suppress(Exception):
