@@ -14,7 +14,6 @@ from pathlib import Path
 
 from nodlidar.runtime.session import Session
 from nodlidar.tracking.recording import LiveScans
-from nodlidar.tracking.segment import OnlineSegmenter
 from nodlidar.tracking.tracker import Tracker
 
 out_dir = Path(sys.argv[1] if len(sys.argv) > 1 else os.environ.get("NODLIDAR_EXAMPLES_OUT", "."))
@@ -25,19 +24,22 @@ tracks = {}                       # track id -> its latest state
 
 
 def step(scan_points):
-    # Tracker.update takes segmented scans: the segmenter is wired in by hand, as the CLI does
-    for state in tracker.update(segmenter.update(scan_points)):
+    # Tracker.update segments each scan itself (online, with the lidar's range noise model)
+    for state in tracker.update(scan_points):
         tracks[state.track_id] = state
 
 
 with Session(scene="paper-tracking", sim_rate=5.0) as s:
-    segmenter = OnlineSegmenter(range_sigma=s.design.lidar.range_sigma_m)
-    tracker = Tracker()
+    tracker = Tracker(range_sigma=s.design.lidar.range_sigma_m)
     live = LiveScans(s.model, (s.lift_left, s.lift_right))   # assembles each scan once covered
-    capture = s.capture(lambda scans, _nod: len(scans) >= N_SCANS,
-                        on_scan=lambda scan, samplers: [step(p) for p in live.on_scan(scan, samplers)])
-    for p in live.finish(capture):
-        step(p)
+
+    def on_scan(scan, samplers):
+        for scan_points in live.on_scan(scan, samplers):
+            step(scan_points)
+
+    capture = s.capture(lambda scans, _nod: len(scans) >= N_SCANS, on_scan=on_scan)
+    for scan_points in live.finish(capture):      # the last scan, once its samples are in
+        step(scan_points)
 
 confirmed = [st for st in tracks.values() if st.confirmed]
 for st in confirmed:
