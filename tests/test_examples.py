@@ -50,7 +50,9 @@ def test_examples_use_only_public_api():
 
     for script in EXAMPLES.glob("*.py"):
         for node in ast.walk(ast.parse(script.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module.startswith("nodlidar"):
+            if isinstance(node, ast.Import):
+                assert not any("._" in a.name for a in node.names), script
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("nodlidar"):
                 assert not any(part.startswith("_") for part in node.module.split(".")), script
                 mod = importlib.import_module(node.module)
                 for alias in node.names:
