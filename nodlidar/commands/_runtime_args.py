@@ -30,9 +30,11 @@ def add_design_arg(p) -> None:
     p.add_argument("--design", metavar="TOML", default=str(PAPER_DESIGN), help=DESIGN_HELP)
 
 
-def add_device_args(p, *, design: bool = True, scene: str | None = None) -> None:
-    """--design, --port, --servo-port, --calibration and the simulated-sensor options
-    (``scene``: the simulated sensor's default scene, ``room`` if None)."""
+def add_device_args(p, *, design: bool = True, scene: str | None = None,
+                    scans: bool = True) -> None:
+    """--design, --port, --servo-port, --calibration, --plausibility (``scans``: the command
+    reads scans) and the simulated-sensor options (``scene``: the simulated sensor's default
+    scene, ``room`` if None)."""
     if design:
         add_design_arg(p)
         p.add_argument("--calibration", metavar="TOML", default=None,
@@ -42,6 +44,10 @@ def add_device_args(p, *, design: bool = True, scene: str | None = None) -> None
                         "(default: the built-in simulated sensor)")
     p.add_argument("--servo-port", metavar="URL", default=None,
                    help="Dynamixel bus port (default: the built-in simulated sensor)")
+    if scans:
+        p.add_argument("--plausibility", action="store_true",
+                       help="drop ranges the lidar cannot have measured (corruptions the SCIP "
+                            "checksums pass; ~3e-4 of clean values are dropped too)")
     p.add_argument("--sim-rate", type=float, default=1.0, metavar="X",
                    help="simulated sensor: simulated seconds per wall second "
                    f"(e.g. 5; {SIM_RATE_MIN:g} .. {SIM_RATE_MAX:g})")
@@ -71,7 +77,8 @@ def session_from_args(args, **kw):
     return Session(getattr(args, "design", None), port=args.port, servo_port=args.servo_port,
                    calibration=getattr(args, "calibration", None), transport=args.sim_transport,
                    sim_rate=args.sim_rate, scene=args.scene, noise=not args.no_noise,
-                   sim_perturbations=sim_perturbations(args.perturb), log=_stderr, **kw)
+                   sim_perturbations=sim_perturbations(args.perturb),
+                   plausibility=getattr(args, "plausibility", False), log=_stderr, **kw)
 
 
 def check_sim_options(args) -> None:

@@ -14,7 +14,7 @@ from ._runtime_args import add_device_args, session_from_args
 def register(sub) -> None:
     p = sub.add_parser("info", help="device info: lidar VV/PP/II and the servos found",
                        description=__doc__)
-    add_device_args(p, design=False)
+    add_device_args(p, design=False, scans=False)
     p.add_argument("--design", metavar="TOML", default=None,
                    help="design of the simulated sensor (default: the paper's build, "
                         "design/urg04lx-paper.toml)")

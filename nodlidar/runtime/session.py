@@ -25,6 +25,7 @@ import numpy as np
 
 from ..errors import DeviceError, ParameterError, require
 from ..paper import PAPER_DESIGN as DEFAULT_DESIGN
+from ..scip import RangePlausibility
 from .actuators import (
     MIRROR_LEFT_ID,
     MIRROR_RIGHT_ID,
@@ -96,6 +97,10 @@ class Session:
         Simulated range noise.
     sim_perturbations : dict of str -> Perturbation, optional
         The simulated sensor's as-built mirror errors (ground truth a calibration should find).
+    plausibility : bool
+        Drop decoded ranges the sensor cannot have measured (values corrupted in a way the
+        6-bit checksums pass): :class:`nodlidar.scip.RangePlausibility` in the lidar driver.
+        Off by default (about 3 in 10 000 clean values are flagged too).
     log : callable, optional
         Receives progress/status messages (one line each); default none (library code does
         not print - the CLI passes a stderr writer).
@@ -105,7 +110,7 @@ class Session:
                  servo_port: str | None = None, calibration: str | Path | None = None,
                  transport: str = "pty", sim_rate: float = 1.0, scene: str | None = None,
                  noise: bool = True, seed: int = 0, lidar_timeout_s: float = 1.0,
-                 sim_perturbations=None,
+                 sim_perturbations=None, plausibility: bool = False,
                  log: Callable[[str], None] | None = None):
         if (port is None) != (servo_port is None):
             raise ParameterError("--port/--servo-port", (port, servo_port),
@@ -119,6 +124,7 @@ class Session:
         self.noise, self.seed = bool(noise), int(seed)
         self.sim_perturbations = sim_perturbations
         self.lidar_timeout_s = float(lidar_timeout_s)
+        self.plausibility = bool(plausibility)
         self.log = log or (lambda _m: None)
         self.lift_left = MirrorLiftProfile()
         self.lift_right = MirrorLiftProfile()
@@ -166,7 +172,9 @@ class Session:
                          f"{self.transport} {lidar_url} + {servo_url}, {self.sim_rate:g}x real time)")
             else:
                 lidar_url, servo_url = self.port, self.servo_port
-            self.urg = UrgDriver(lidar_url, timeout=self.lidar_timeout_s).open()
+            self.urg = UrgDriver(lidar_url, timeout=self.lidar_timeout_s,
+                                 plausibility=RangePlausibility() if self.plausibility else None
+                                 ).open()
             # the simulated bus shares this machine's cores: give its replies more time
             self.bus = DynamixelBus(servo_url, time_source=self.time_source,
                                     timeout_s=0.5 if self.simulated else 0.1).open()
