@@ -140,3 +140,44 @@ def test_live_scans_equal_the_whole_capture_assembled_at_once():
         np.testing.assert_array_equal(g.steps, w.steps)
         np.testing.assert_array_equal(g.points, w.points)
         np.testing.assert_array_equal(g.ray_dir, w.ray_dir)
+
+
+def test_live_scans_with_pruned_samples_equal_the_whole_capture():
+    """``track live``'s way: a capture that keeps no scans, samplers pruned behind
+    ``LiveScans.need_since_s()`` after every scan. The scans handed on equal the whole
+    capture assembled at once from every sample (collected here before each prune), and the
+    samplers hold only a few scans' worth at any time (memory flat over a long run)."""
+    from nodlidar.runtime.session import Session
+    from nodlidar.tracking.recording import LiveScans, scans_from_capture
+
+    got, scans, seen, held = [], [], {}, []
+    with Session(scene="paper-tracking", sim_rate=2, log=None) as s:
+        live = LiveScans(s.model, (s.lift_left, s.lift_right))
+
+        def on_scan(scan, samplers):
+            scans.append(scan)
+            for name, smp in samplers.items():   # every sample, before it can be pruned
+                x = smp.samples()
+                t, a = seen.get(name, (np.empty(0), np.empty(0)))
+                new = x.host_time_s > (t[-1] if len(t) else -np.inf)
+                seen[name] = (np.r_[t, x.host_time_s[new]], np.r_[a, x.angle_rad[new]])
+            got.extend(live.on_scan(scan, samplers))
+            for smp in samplers.values():
+                smp.prune(live.need_since_s())
+                held.append(len(smp.buffer))
+
+        cap = s.capture(lambda sc, _nod: len(sc) >= 14, on_scan=on_scan, keep=False)
+        for name, (t, a) in cap.joints.items():   # what came after the last scan
+            tt, aa = seen[name]
+            new = t > tt[-1]
+            seen[name] = (np.r_[tt, t[new]], np.r_[aa, a[new]])
+        got += live.finish(cap)
+        whole = scans_from_capture(s.model, scans, seen, (s.lift_left, s.lift_right))
+    assert [g.scan for g in got] == [w.scan for w in whole] and len(got) == 14
+    for g, w in zip(got, whole):
+        np.testing.assert_array_equal(g.points, w.points)
+        np.testing.assert_array_equal(g.steps, w.steps)
+    # a scan is 0.1 s; the nod and lift samplers read tens of samples a second each: far
+    # fewer than the whole run's samples stay buffered once pruning works
+    total = max(len(t) for t, _ in seen.values())
+    assert max(held) < 0.5 * total

@@ -80,9 +80,13 @@ def _live(args, step) -> None:
         def on_scan(scan, samplers) -> None:
             for sp in live.on_scan(scan, samplers):
                 step(sp)
+            for smp in samplers.values():  # keep only what the scans still pending need
+                smp.prune(live.need_since_s())
 
+        # keep=False: the capture holds no scans and the samplers every sample until
+        # pruned above - a long live run loses no nod angle and its memory stays flat
         cap = s.capture(lambda scans, _nod: len(scans) >= args.scans, lift=args.lifted,
-                        on_scan=on_scan)
+                        on_scan=on_scan, keep=False)
         for sp in live.finish(cap):
             step(sp)
     print(f"live: tracked {live.n_done} of {live.n_in} scans (calibration "

@@ -250,11 +250,7 @@ def run_view(session, sink: FoxgloveSink, *, duration_s: float | None = None,
     t0 = time.time_ns()
     sink.publish("mirrors", encode.mirror_update(patches, t0), t0)
     sink.publish("tf", encode.frame_transforms(0.0, pivot, sensor_height_m, t0), t0)
-    lidar = design.lidar
     wall0 = time.monotonic()
-
-    def first_beam(scan) -> float:
-        return float(lidar.beam_time_s(scan.stamp_s, np.asarray([np.min(scan.steps)]))[0])
 
     def on_scan(scan, samplers) -> None:
         stats.scans += 1
@@ -273,8 +269,7 @@ def run_view(session, sink: FoxgloveSink, *, duration_s: float | None = None,
                     if not stats.tracks_skipped:
                         log(f"tracker behind by {TRACK_BACKLOG} scans: skipping scans")
                     stats.tracks_skipped += 1
-            if live_scans.pending:
-                need = min(need, first_beam(live_scans.pending[0]))
+            need = min(need, live_scans.need_since_s())
         for smp in samplers.values():   # memory stays flat however long the view runs
             smp.prune(need)
 

@@ -159,6 +159,17 @@ class LiveScans:
         self.pending: list = []
         self.n_in = 0  # scans received
         self.n_done = 0  # scans handed on (or dropped) so far
+        self._done_until = -np.inf  # last beam time [s] of the scans handed on
+
+    def need_since_s(self) -> float:
+        """Earliest time [s] a scan not yet handed on may need servo samples for: the oldest
+        pending scan's first beam, or (none pending) the last handed-on beam - the next
+        scan's beams come after it. Samples before it may be pruned (``sampler.prune``):
+        a long live run then keeps a few scans' worth, and loses none."""
+        if not self.pending:
+            return self._done_until
+        s = self.pending[0]
+        return float(self.model.lidar.beam_time_s(s.stamp_s, np.asarray([np.min(s.steps)]))[0])
 
     def _ready(self, joints, final: bool) -> list[ScanPoints]:
         lidar = self.model.lidar
@@ -173,6 +184,9 @@ class LiveScans:
         batch, self.pending = self.pending[:n], self.pending[n:]
         first = self.n_done
         self.n_done += n
+        if batch:
+            s = batch[-1]
+            self._done_until = float(lidar.beam_time_s(s.stamp_s, np.asarray([np.max(s.steps)]))[0])
         return scans_from_capture(self.model, batch, joints, self.lift_profiles,
                                   sensor_height_m=self.sensor_height_m, first_index=first)
 
