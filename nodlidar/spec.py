@@ -28,6 +28,7 @@ import numpy as np
 
 from .errors import DesignFileError, ParameterError, require
 from .lidar import LidarModel, lidar_model
+from .validation import safe_name
 
 __all__ = [
     "LayoutSpec",
@@ -412,8 +413,9 @@ class DesignSpec:
     sections: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        require(isinstance(self.name, str) and self.name.strip() != "" and "/" not in self.name,
-                "name", self.name, "a non-empty name without '/'")
+        # the name becomes an output folder (cad_out/<name>, out/report/<name>): never '..',
+        # a separator or a control character, however the spec was made
+        safe_name(self.name, "name")
         model = lidar_model(self.lidar)  # raises with the allowed names
         object.__setattr__(self, "lidar", model.name)
         D = self.layout.design_distance_m

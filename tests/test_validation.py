@@ -439,3 +439,17 @@ def test_nested_tables_get_the_same_strict_checks(tmp_path, old, new, needle):
         load_design(p)
     assert needle in _one_line(e.value) and str(p) in str(e.value)
     load_design(EXACT)  # the unedited file loads
+
+
+@pytest.mark.parametrize("bad", ["..", ".", "a/b", "a\\b", "x\ny", "-rf"])
+def test_design_name_made_in_code_cannot_escape_an_output_folder(bad):
+    """The name becomes cad_out/<name> and out/report/<name>: DesignSpec itself refuses
+    names that are not one safe path component, not only the file loader."""
+    import dataclasses
+
+    from nodlidar.paper import PAPER_DESIGN
+    from nodlidar.spec import load_design
+
+    spec = load_design(PAPER_DESIGN)
+    with pytest.raises(ParameterError, match="name"):
+        dataclasses.replace(spec, name=bad)
