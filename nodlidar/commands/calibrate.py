@@ -20,7 +20,8 @@ The fit is robust to clutter (doorways, furniture, a second wall: rejected as ou
 the lidar's noise model) and checked by quality gates after it. If any gate fails, each
 problem is printed on stderr (one line, naming the capture or mirror and what to do), no
 calibration file is written and the exit status is 2; ``--force`` writes it anyway (the
-problems are recorded in the file). An existing ``--out`` is refused unless ``--force``.
+problems are recorded in the file) and the exit status is still 2. An existing ``--out``
+is refused unless ``--force``.
 
 ``--fit-range-offset`` / ``--fit-range-scale`` also fit the lidar's range offset and scale
 (the scale needs ``--wall-distance-m``: the measured distance of each wall from the sensor,
@@ -299,7 +300,9 @@ def run(args) -> int:
         print("nodlidar calibrate: " + (f"wrote {args.out} anyway (--force)" if write else
                                         "no calibration file written (--force writes it anyway)"),
               file=sys.stderr)
-    status = 0 if (result.ok or args.force) else 2
+    # --force writes the file (problems recorded in it) but never turns a failed gate into
+    # success: the exit status still says the calibration is not vouched for
+    status = 0 if result.ok else 2
     if args.json:
         out = {"id": cal.id, "source": source, **result.to_dict()}
         if truth is not None:
