@@ -17,7 +17,8 @@ import textwrap
 from typing import NoReturn
 
 from . import __version__, commands
-from .commands._output import configure, paragraphs, plain
+from .commands._output import (catch_swallowed_interrupts, configure, paragraphs, plain,
+                               raise_if_interrupted)
 from .errors import NodlidarError
 
 EXIT_OK = 0
@@ -116,8 +117,11 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("nodlidar").debug("nodlidar %s, Python %s, %s", __version__,
                                         sys.version.split()[0],
                                         {k: v for k, v in vars(args).items() if not callable(v)})
+    restore_hook = catch_swallowed_interrupts()
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        raise_if_interrupted()   # never report success for a run the user cancelled
+        return code
     except NodlidarError as exc:
         print(f"nodlidar {args.command}: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -132,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"nodlidar {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        restore_hook()
 
 
 if __name__ == "__main__":  # pragma: no cover

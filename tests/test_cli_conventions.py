@@ -154,3 +154,31 @@ def test_report_json(tmp_path, capsys):
     assert len(out["figures"]) == 9 and all(Path(f).is_file() for f in out["figures"])
     assert out["summary"] == json.loads(Path(out["json"]).read_text())
     assert out["summary"]["tolerance"]["n_samples"] == 40
+
+
+def test_a_swallowed_ctrl_c_still_exits_130(monkeypatch, capsys):
+    """A KeyboardInterrupt raised where Python drops it (here a ``__del__``; in the field
+    Dask's gc callback during ``tolerance --workers``) must not end in exit 0 with the
+    cancelled result: the command stops at its next checkpoint, one line, status 130."""
+    import nodlidar.commands.info as info_cmd
+
+    class RaisesOnDelete:
+        def __del__(self):
+            raise KeyboardInterrupt
+
+    def run(args):
+        RaisesOnDelete()   # dropped at once: Python prints "Exception ignored" and goes on
+        print("the result")
+        return 0
+
+    monkeypatch.setattr(info_cmd, "run", run)
+    import sys as _sys
+
+    hook_before = _sys.unraisablehook
+    code = main(["info"])
+    out, err = capsys.readouterr()
+    assert code == 130
+    assert err.strip().splitlines() == ["nodlidar info: interrupted"]
+    assert "the result" in out   # printed before the interrupt was seen; the status says no
+    # outside a command run, unraisable exceptions are reported the usual way again
+    assert _sys.unraisablehook is hook_before

@@ -5,6 +5,8 @@
 - :func:`progress_disable` is the ``disable=`` every tqdm bar of the CLI passes: ``True``
   under ``-q``, else ``None`` (tqdm's own rule: drawn on a terminal only).
 - :func:`plain` turns a docstring into the plain text ``--help`` shows (no reST markup).
+- :func:`catch_swallowed_interrupts` / :func:`raise_if_interrupted`: a Ctrl-C that Python
+  had to swallow still ends the command with status 130.
 """
 
 from __future__ import annotations
@@ -13,7 +15,8 @@ import logging
 import re
 import sys
 
-__all__ = ["configure", "status", "progress_disable", "plain", "LOGGER"]
+__all__ = ["configure", "status", "progress_disable", "plain", "LOGGER",
+           "catch_swallowed_interrupts", "raise_if_interrupted"]
 
 LOGGER = "nodlidar"
 
@@ -43,6 +46,46 @@ def configure(verbosity: int) -> None:
         log.addHandler(h)
     log.setLevel(logging.WARNING if verbosity < 0 else logging.DEBUG if verbosity > 0 else logging.INFO)
     log.propagate = False
+
+
+_swallowed_interrupt = False
+
+
+def catch_swallowed_interrupts():
+    """Remember a Ctrl-C that Python could not raise; returns the restorer.
+
+    A ``KeyboardInterrupt`` raised where Python cannot propagate it (a ``gc`` callback such
+    as Dask's ``GCDiagnosis``, a ``__del__``, a weakref callback) is printed as "Exception
+    ignored in ..." and dropped: the command then ran to the end and exited 0 with the
+    result the user had just cancelled. This hook records it instead (and prints nothing);
+    :func:`raise_if_interrupted` raises it again at the next checkpoint (each progress
+    update, and before the CLI reports success).
+    """
+    global _swallowed_interrupt
+    _swallowed_interrupt = False
+    previous = sys.unraisablehook
+
+    def hook(unraisable) -> None:
+        global _swallowed_interrupt
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            _swallowed_interrupt = True
+            return
+        previous(unraisable)
+
+    sys.unraisablehook = hook
+
+    def restore() -> None:
+        sys.unraisablehook = previous
+
+    return restore
+
+
+def raise_if_interrupted() -> None:
+    """Raise ``KeyboardInterrupt`` if a Ctrl-C was swallowed (:func:`catch_swallowed_interrupts`)."""
+    global _swallowed_interrupt
+    if _swallowed_interrupt:
+        _swallowed_interrupt = False
+        raise KeyboardInterrupt
 
 
 def status(msg: str) -> None:

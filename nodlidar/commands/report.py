@@ -36,12 +36,13 @@ def tqdm_progress(desc: str):
     """A ``progress(done, total)`` callback drawing a tqdm bar (CLI only), and its closer."""
     from tqdm import tqdm
 
-    from ._output import progress_disable
+    from ._output import progress_disable, raise_if_interrupted
 
     bar = None
 
     def progress(done: int, total: int) -> None:
         nonlocal bar
+        raise_if_interrupted()   # a Ctrl-C swallowed inside Dask stops the run here
         if bar is None:
             bar = tqdm(total=total, desc=desc, unit="sample", disable=progress_disable())
         bar.update(done - bar.n)

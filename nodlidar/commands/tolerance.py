@@ -77,6 +77,9 @@ def run(args) -> int:
         raise
     finally:
         close()
+    from ._output import raise_if_interrupted
+
+    raise_if_interrupted()   # a Ctrl-C Dask swallowed after the last chunk: no results
     sens = sensitivities(design)
     if args.json:
         json.dump({"name": design.spec.name, "n_samples": res.n_samples, "seed": res.seed,
