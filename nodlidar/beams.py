@@ -20,15 +20,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .geometry import MirrorPatch, Perturbation, reflect_rays
+from .geometry import DIRECT, MirrorPatch, Perturbation, reflect_rays
 from .lidar import LidarModel
 
 if TYPE_CHECKING:
     from .solver import Design
 
-__all__ = ["BeamModel", "DIRECT"]
-
-DIRECT = -1
+__all__ = ["BeamModel", "DIRECT"]   # DIRECT: geometry.DIRECT, re-exported
 
 
 @dataclass(frozen=True, eq=False)

@@ -25,9 +25,18 @@ import numpy as np
 from .errors import ParameterError, require
 
 __all__ = [
+    "DIRECT",
+    "HOUSING",
+    "BLOCKED",
+    "Tol",
+    "TOL",
     "unit",
     "reflect",
     "matrix_from_axis_angle",
+    "rotate_about_axis",
+    "rotate_about_line",
+    "pitch_about_pivot",
+    "directions_from_bearings",
     "rot_x",
     "rot_y",
     "rot_z",
@@ -36,10 +45,51 @@ __all__ = [
     "ray_plane_distance",
     "ray_circle_exit",
     "ray_cylinder_hit",
+    "reflect_rays",
+    "arc_point",
     "bearing_of",
+    "wrap_angle",
 ]
 
-_EPS = 1e-12
+#: Mirror index of a beam that meets no mirror (goes straight out of the lidar).
+DIRECT = -1
+#: Blocker code of a beam stopped by the lidar's own housing (a reflection turned back).
+HOUSING = -2
+#: Blocker code of a beam stopped by anything else before its target (another mirror's
+#: back, a carrier).
+BLOCKED = -3
+
+
+@dataclass(frozen=True)
+class Tol:
+    """The numerical tolerances of the geometry, in one place (SI units).
+
+    Attributes
+    ----------
+    parallel : float
+        ``|d . n|`` below which a ray counts as parallel to a plane [-].
+    ahead_m : float
+        Smallest distance along a ray that counts as a hit ahead of its origin [m] (a
+        reflected ray must not hit the mirror it starts on again).
+    unit_norm : float
+        Allowed deviation of a unit vector's norm from 1, and of a dot product from 0 for
+        vectors that must be perpendicular [-].
+    rotation : float
+        Allowed ``|R^T R - I|`` and ``|det R - 1|`` of a rotation matrix [-].
+    angle_rad : float
+        Angles closer than this are the same (e.g. a zero rotation) [rad].
+    """
+
+    parallel: float = 1e-12
+    ahead_m: float = 1e-12
+    unit_norm: float = 1e-9
+    rotation: float = 1e-6
+    angle_rad: float = 1e-12
+
+
+#: The tolerances every module uses (``geometry.TOL.parallel`` etc.).
+TOL = Tol()
+_EPS = TOL.parallel
 
 
 def unit(v: np.ndarray) -> np.ndarray:
@@ -76,6 +126,74 @@ def matrix_from_axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
             [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
         ]
     )
+
+
+def rotate_about_axis(v: np.ndarray, axis: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
+    """Rotate vectors about axes through the origin (Rodrigues, right hand, active).
+
+    The one rotation of the code base: every module that turns vectors about an axis
+    calls this (or :func:`matrix_from_axis_angle` for one matrix).
+
+    Parameters
+    ----------
+    v : (..., 3) float
+        Vectors.
+    axis : (3,) or (..., 3) float
+        Unit axes (one for all rows, or one per row).
+    angle : float or (...,) float
+        Angles [rad] (one for all rows, or one per row).
+
+    Returns
+    -------
+    (..., 3) float (the broadcast shape of the inputs).
+    """
+    v = np.asarray(v, dtype=float)
+    k = np.asarray(axis, dtype=float)
+    a = np.asarray(angle, dtype=float)
+    c, s = np.cos(a)[..., None], np.sin(a)[..., None]
+    # k x v by components: the same numbers as np.cross, without its axis juggling
+    k0, k1, k2 = k[..., 0], k[..., 1], k[..., 2]
+    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
+    kxv = np.stack([k1 * v2 - k2 * v1, k2 * v0 - k0 * v2, k0 * v1 - k1 * v0], -1)
+    kv = (k0 * v0 + k1 * v1 + k2 * v2)[..., None]
+    return v * c + kxv * s + kv * k * (1.0 - c)
+
+
+def rotate_about_line(p: np.ndarray, point: np.ndarray, axis: np.ndarray,
+                      angle: np.ndarray | float) -> np.ndarray:
+    """Rotate points ``p (..., 3)`` about the line through ``point`` along unit ``axis``
+    by ``angle`` [rad] (shapes as in :func:`rotate_about_axis`)."""
+    q = np.asarray(point, dtype=float)
+    return q + rotate_about_axis(np.asarray(p, dtype=float) - q, axis, angle)
+
+
+def pitch_about_pivot(p: np.ndarray, pitch: np.ndarray | float,
+                      pivot: np.ndarray | None = None) -> np.ndarray:
+    """The nod: points ``p (..., 3)`` of the head frame turned by ``R_y(pitch)`` about
+    ``pivot (3,)`` [m] (default the origin): ``pivot + R_y(pitch) (p - pivot)``.
+
+    ``pitch`` [rad] is one angle or one per row (positive tips +x down,
+    docs/conventions.md). Returns ``(..., 3)``.
+    """
+    p = np.asarray(p, dtype=float)
+    a = np.asarray(pitch, dtype=float)
+    c, s = np.cos(a), np.sin(a)
+    q = p if pivot is None else p - np.asarray(pivot, dtype=float)
+    x, y, z = q[..., 0], q[..., 1], q[..., 2]
+    out = np.stack([c * x + s * z, np.broadcast_to(y, np.broadcast(x, c).shape), -s * x + c * z], -1)
+    return out if pivot is None else out + np.asarray(pivot, dtype=float)
+
+
+def directions_from_bearings(bearing: np.ndarray | float,
+                             elevation: np.ndarray | float | None = None) -> np.ndarray:
+    """Unit directions ``(..., 3)`` of bearings [rad] (from +x towards +y) in the scan
+    plane, or lifted by ``elevation`` [rad] out of it (+z up)."""
+    b = np.asarray(bearing, dtype=float)
+    if elevation is None:
+        return np.stack([np.cos(b), np.sin(b), np.zeros_like(b)], -1)
+    e = np.asarray(elevation, dtype=float)
+    ce = np.cos(e)
+    return np.stack(np.broadcast_arrays(ce * np.cos(b), ce * np.sin(b), np.sin(e)), -1)
 
 
 def rot_z(angle: np.ndarray | float) -> np.ndarray:

@@ -100,3 +100,47 @@ def test_hinge_rotation_composes_and_lifts_out_of_plane():
     assert_allclose(q.corners(), p.corners(), atol=1e-14)
     lifted = p.rotated_about_hinge(-np.pi / 2)  # hinge below: top swings away from O
     assert lifted.corners()[:, 2].max() < 0  # the whole glass is below the scan plane
+
+
+# -- the one rotation vocabulary -----------------------------------------------------------
+def test_rotate_about_axis_matches_the_matrix_per_row():
+    """Rodrigues per row vs the 3x3 matrix built one row at a time (exact to rounding)."""
+    from nodlidar.geometry import matrix_from_axis_angle, rotate_about_axis, unit
+
+    rng = np.random.default_rng(7)
+    v = rng.normal(size=(40, 3))
+    k = unit(rng.normal(size=(40, 3)))
+    a = rng.uniform(-np.pi, np.pi, 40)
+    want = np.array([matrix_from_axis_angle(k[i], a[i]) @ v[i] for i in range(40)])
+    assert_allclose(rotate_about_axis(v, k, a), want, atol=1e-14)
+    # one axis and one angle for all rows; norm and the axis component are kept
+    out = rotate_about_axis(v, k[0], 0.7)
+    assert_allclose(np.linalg.norm(out, axis=1), np.linalg.norm(v, axis=1), rtol=1e-14)
+    assert_allclose(out @ k[0], v @ k[0], atol=1e-14)
+
+
+def test_pitch_about_pivot_is_rot_y_about_the_pivot():
+    """The nod as written out vs rot_y matrices; the pivot is a fixed point; +pitch tips +x down."""
+    from nodlidar.geometry import pitch_about_pivot, rot_y
+
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(30, 3))
+    a = rng.uniform(-0.5, 0.5, 30)
+    pivot = np.array([0.02, -0.01, 0.05])
+    want = pivot + np.einsum("nij,nj->ni", rot_y(a), p - pivot)
+    assert_allclose(pitch_about_pivot(p, a, pivot), want, atol=1e-15)
+    assert_allclose(pitch_about_pivot(pivot[None], 0.3, pivot), pivot[None], atol=1e-15)
+    assert pitch_about_pivot(np.array([1.0, 0, 0]), 0.1)[2] < 0
+
+
+def test_directions_from_bearings():
+    """Unit vectors whose atan2 is the bearing and whose asin(z) is the elevation."""
+    from nodlidar.geometry import bearing_of, directions_from_bearings
+
+    b = np.linspace(-2, 2, 9)
+    e = np.linspace(-0.3, 0.3, 9)
+    d = directions_from_bearings(b, e)
+    assert_allclose(np.linalg.norm(d, axis=1), 1.0, rtol=1e-15)
+    assert_allclose(bearing_of(d), b, atol=1e-15)
+    assert_allclose(np.arcsin(d[:, 2]), e, atol=1e-15)
+    assert_allclose(directions_from_bearings(b)[:, 2], 0.0)
