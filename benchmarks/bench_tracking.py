@@ -27,7 +27,7 @@ import numpy as np
 
 from nodlidar.solver import solve
 from nodlidar.spec import load_design
-from nodlidar.tracking.motion import RenyiCost, _voxel_entropy_fast, compensate
+from nodlidar.tracking.motion import RenyiCost, compensate, voxel_entropy
 from nodlidar.tracking.segment import OnlineSegmenter, SegmentConfig, segment_batch
 from nodlidar.tracking.simdata import simulate_scans
 from nodlidar.tracking.tracker import Tracker, TrackerConfig
@@ -48,7 +48,7 @@ def per_call(fn, min_time: float = 0.3) -> float:
 def time_entropies(P, T, vel) -> tuple[float, float, float]:
     """Seconds per voxel evaluation, per Rényi evaluation, per Rényi pair-list setup."""
     t_ref = float(T.max())
-    tv = per_call(lambda: _voxel_entropy_fast(compensate(P, T, vel, t_ref)[:, :2], 0.03))
+    tv = per_call(lambda: voxel_entropy(compensate(P, T, vel, t_ref)[:, :2], 0.03))
     cost = RenyiCost(P, T, t_ref, 0.02, vel, max_dv_m_s=0.08)
     tr = per_call(lambda: cost(vel))
     ts = per_call(lambda: RenyiCost(P, T, t_ref, 0.02, vel, max_dv_m_s=0.08))

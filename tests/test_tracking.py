@@ -21,8 +21,9 @@ from nodlidar.tracking.motion import (
     refine_motion,
     voxel_entropy,
 )
+from nodlidar.tracking.scans import ScanPoints
 from nodlidar.tracking.segment import SegmentConfig, cluster_points, segment_batch
-from nodlidar.tracking.simdata import ScanPoints, synthetic_scans
+from nodlidar.tracking.simdata import synthetic_scans
 from nodlidar.tracking.study import convergence_index, count_traces
 from nodlidar.tracking.tracker import Tracker, TrackerConfig
 from nodlidar.tracking.voxels import VoxelGrid, VoxelMap, index_from_key, key_from_index
@@ -102,6 +103,46 @@ def _ring_cloud(vel, n_scans=10, n_per=60, radius=0.18, noise=0.0, seed=3):
         P.append(np.column_stack([xy, z]) + rng.normal(0, noise, (n_per, 3)))
         T.append(t)
     return np.vstack(P), np.concatenate(T)
+
+
+def _voxel_entropy_reference(points, voxel_m, plane=True):
+    """Eq. 12 written out independently (the test oracle, not library code): voxels counted
+    in a Python dict of index tuples, h(p) summed term by term."""
+    from collections import Counter
+    from math import floor, log
+
+    cols = 2 if plane else 3
+    n = Counter(tuple(floor(x / voxel_m) for x in row[:cols]) for row in np.asarray(points))
+    h = 0.0
+    for c in n.values():
+        p = c / (c + 1.0)
+        h -= p * log(p) + (1 - p) * log(1 - p)
+    return h
+
+
+def test_voxel_entropy_worked_example():
+    # three points in one 0.1 m pixel, one alone: h(3/4) + h(1/2) by hand
+    pts = np.array([[0.01, 0.01, 0], [0.05, 0.02, 0.5], [0.09, 0.09, 0.9], [0.31, -0.05, 0]])
+
+    def h(p):
+        return -p * np.log(p) - (1 - p) * np.log(1 - p)
+
+    assert_allclose(voxel_entropy(pts, 0.1), h(0.75) + h(0.5), rtol=1e-14)
+    # in 3D the first three are in three voxels (z 0, 0.5, 0.9): four single hits
+    assert_allclose(voxel_entropy(pts, 0.1, plane=False), 4 * h(0.5), rtol=1e-14)
+
+
+@pytest.mark.parametrize("plane", [True, False])
+@pytest.mark.parametrize("seed", range(4))
+def test_voxel_entropy_equals_reference(plane, seed):
+    # the one library implementation (packed keys, one sort) against the dict-counting
+    # oracle, on clouds with negative coordinates, dense and sparse voxels: the same counts,
+    # so equal to the rounding of a sum of a few hundred terms
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(600, 3)) * [0.3, 0.2, 0.5] + rng.uniform(-3, 3, 3)
+    for vox in (0.01, 0.03, 0.2):
+        assert_allclose(voxel_entropy(pts, vox, plane), _voxel_entropy_reference(pts, vox, plane),
+                        rtol=1e-12)
 
 
 @pytest.mark.parametrize("entropy", ["renyi", "voxel"])
@@ -272,3 +313,18 @@ def test_bad_grid_parameters_are_refused():
         refine_motion(P, T, MotionEstimate(0.13, 1.56), entropy="voxel", voxel_grid=(2,))
     with pytest.raises(ParameterError, match="warm_voxel_grid"):
         TrackerConfig(warm_voxel_grid=())
+
+
+def test_scanpoints_is_neutral_and_live_path_does_not_import_the_simulated_source():
+    # issue 18: ScanPoints lives in tracking.scans; simdata re-exports the same class; the
+    # live path (recording -> segment -> tracker) loads nothing of the simulated source
+    import subprocess
+    import sys
+
+    from nodlidar.tracking import scans, simdata
+
+    assert simdata.ScanPoints is scans.ScanPoints
+    code = ("import sys, nodlidar.tracking.recording, nodlidar.tracking.segment, "
+            "nodlidar.tracking.tracker; print('nodlidar.tracking.simdata' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

@@ -184,8 +184,8 @@ def test_window_map_answers_as_the_full_map_within_its_window():
 
 def test_batched_voxel_grid_equals_one_evaluation_per_velocity():
     # the batched pass (one sort of an (m, n) key array) against eq. 12 evaluated velocity by
-    # velocity with np.unique over rows (voxel_entropy): same pixels, same counts -> equal to
-    # rounding of the float sums
+    # velocity (voxel_entropy, itself checked against an independent oracle in
+    # test_tracking.py): same pixels, same counts -> equal to rounding of the float sums
     from nodlidar.tracking.motion import _voxel_entropy_grid, compensate, voxel_entropy
 
     rng = np.random.default_rng(0)
@@ -246,7 +246,7 @@ class _OneBlob:
     """Stub of Segmented: scan k with one 20-point blob moving at 0.13 m/s along y."""
 
     def __init__(self, k):
-        from nodlidar.tracking.simdata import ScanPoints
+        from nodlidar.tracking.scans import ScanPoints
 
         pts = np.random.default_rng(k).normal([2.0, 0.013 * k, 0.5], 0.02, (20, 3))
         n = len(pts)

@@ -3,7 +3,7 @@
 The runtime keeps the raw scans, the nod and mirror servo samples and the design (and
 calibration) they belong to (:mod:`nodlidar.runtime.bag` for recordings,
 :class:`~nodlidar.runtime.session.Capture` live). Each scan becomes a
-:class:`~nodlidar.tracking.simdata.ScanPoints` through the runtime assembly itself
+:class:`~nodlidar.tracking.scans.ScanPoints` through the runtime assembly itself
 (:func:`~nodlidar.runtime.assembly.assemble`: the one place that decides each beam's time,
 its nod angle, its mirror's state, and drops beams outside the nod samples, with the
 mirror moving, or blocked); only the outgoing rays are added here, from the same
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .._light import DEFAULT_SENSOR_HEIGHT_M  # defined without numpy: the CLI parser shows it
-from .simdata import ScanPoints
+from .scans import ScanPoints
 
 __all__ = ["DEFAULT_SENSOR_HEIGHT_M", "scans_from_capture", "scans_from_recording",
            "LiveScans"]

@@ -28,7 +28,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..errors import require
-from .simdata import ScanPoints
+from .scans import ScanPoints
 from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap
 
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch", "OnlineSegmenter"]

@@ -1,6 +1,7 @@
 """Scans for the tracking pipeline: world-frame points with per-beam time and free-space rays.
 
-:class:`ScanPoints` is what the tracking pipeline consumes: one lidar scan projected with the
+:class:`~nodlidar.tracking.scans.ScanPoints` (defined in :mod:`.scans`, re-exported here) is
+what the tracking pipeline consumes: one lidar scan projected with the
 runtime :class:`~nodlidar.beams.BeamModel` (per-beam nod angle) and placed in the world by the
 robot pose (the paper assumes reliable localisation). It also carries the outgoing ray of every
 beam, so that :mod:`nodlidar.tracking.voxels` can carve free space.
@@ -14,65 +15,12 @@ beam, so that :mod:`nodlidar.tracking.voxels` can carve free space.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from ..errors import require
+from .scans import ScanPoints  # re-exported: it was defined here
 
 __all__ = ["ScanPoints", "project_scan", "simulate_scans", "synthetic_scans"]
-
-
-@dataclass(frozen=True, eq=False)
-class ScanPoints:
-    """One scan in the world frame. Arrays are over the scan's beams, ``(n,)`` / ``(n, 3)``.
-
-    Attributes
-    ----------
-    scan : int
-        Scan index.
-    steps : (n,) int
-    t_s : (n,) float
-        Time of each beam [s].
-    mirror : (n,) int
-        Mirror index of the beam (-1 direct), from the runtime BeamModel.
-    range_m : (n,) float
-        Measured range (total path) [m]; NaN = no return.
-    points : (n, 3) float
-        World point [m] (NaN where no return).
-    ray_start : (n, 3) float
-        World start of the outgoing ray (the lidar, or the beam's hit on its mirror) [m].
-    ray_dir : (n, 3) float
-        World unit direction of the outgoing ray.
-    ray_offset : (n,) float
-        Path length before ``ray_start`` [m]: the point is ``start + (r - offset) dir``.
-    truth_id : (n,) int or None
-        Ground truth object id (-1 none, 0 static, 1 + k mover k), when known.
-    calibration_id : str
-        The calibration the points were projected with (``"none"``: the design as is).
-    """
-
-    scan: int
-    steps: np.ndarray
-    t_s: np.ndarray
-    mirror: np.ndarray
-    range_m: np.ndarray
-    points: np.ndarray
-    ray_start: np.ndarray
-    ray_dir: np.ndarray
-    ray_offset: np.ndarray
-    truth_id: np.ndarray | None = None
-    calibration_id: str = "none"
-
-    @property
-    def valid(self) -> np.ndarray:
-        """(n,) bool: beams with a return."""
-        return np.isfinite(self.range_m)
-
-    @property
-    def t_mid_s(self) -> float:
-        """Mean beam time of the scan [s]."""
-        return float(np.mean(self.t_s))
 
 
 def _world(pose, p_sensor: np.ndarray, t: np.ndarray, direction: bool = False) -> np.ndarray:

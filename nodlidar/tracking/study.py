@@ -35,8 +35,9 @@ import numpy as np
 
 from ..paper import TRACKING_HEADING_DEG, TRACKING_SPEED_M_S
 from .motion import coarse_motion, compensate, refine_motion
+from .scans import ScanPoints
 from .segment import SegmentConfig, segment_batch
-from .simdata import ScanPoints, simulate_scans
+from .simdata import simulate_scans
 from .tracker import Tracker, TrackerConfig
 
 __all__ = ["table_markdown", "table_csv", "V_TOL_M_S", "HEADING_TOL_DEG", "count_traces",

@@ -2,7 +2,7 @@
 nearest-neighbour assignment, birth, confirmation and deletion.
 
 Each scan's dynamic clusters (:class:`~nodlidar.tracking.segment.Segmented`; a
-:class:`~nodlidar.tracking.simdata.ScanPoints` from the live path is segmented first by the
+:class:`~nodlidar.tracking.scans.ScanPoints` from the live path is segmented first by the
 tracker's own :class:`~nodlidar.tracking.segment.OnlineSegmenter`) are the measurements.
 Every track carries a constant-velocity state ``(x, vx, y, vy)`` filtered over time with
 Stone Soup's components (:class:`~stonesoup.models.transition.linear.ConstantVelocity` per
@@ -216,7 +216,7 @@ class Tracker:
     """Multi-object tracker over segmented scans (module docstring).
 
     ``update(scan)`` takes a :class:`~nodlidar.tracking.segment.Segmented` scan, or a
-    :class:`~nodlidar.tracking.simdata.ScanPoints` (segmented here, online, with ``segment``
+    :class:`~nodlidar.tracking.scans.ScanPoints` (segmented here, online, with ``segment``
     and ``range_sigma``), and returns the states of the tracks that changed in this scan
     (updated, or ended).
 

@@ -1,0 +1,69 @@
+"""One scan as the tracking pipeline consumes it: world-frame points with per-beam time and
+free-space rays.
+
+:class:`ScanPoints` is the neutral type every source of scans produces (the runtime assembly
+via :mod:`nodlidar.tracking.recording` for recordings and the live path, the simulator via
+:mod:`nodlidar.tracking.simdata`) and that :mod:`nodlidar.tracking.segment` and the tracker
+take. It lives here, not with the simulated source, so the live path imports nothing of the
+simulation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["ScanPoints"]
+
+
+@dataclass(frozen=True, eq=False)
+class ScanPoints:
+    """One scan in the world frame. Arrays are over the scan's beams, ``(n,)`` / ``(n, 3)``.
+
+    Attributes
+    ----------
+    scan : int
+        Scan index.
+    steps : (n,) int
+    t_s : (n,) float
+        Time of each beam [s].
+    mirror : (n,) int
+        Mirror index of the beam (-1 direct), from the runtime BeamModel.
+    range_m : (n,) float
+        Measured range (total path) [m]; NaN = no return.
+    points : (n, 3) float
+        World point [m] (NaN where no return).
+    ray_start : (n, 3) float
+        World start of the outgoing ray (the lidar, or the beam's hit on its mirror) [m].
+    ray_dir : (n, 3) float
+        World unit direction of the outgoing ray.
+    ray_offset : (n,) float
+        Path length before ``ray_start`` [m]: the point is ``start + (r - offset) dir``.
+    truth_id : (n,) int or None
+        Ground truth object id (-1 none, 0 static, 1 + k mover k), when known.
+    calibration_id : str
+        The calibration the points were projected with (``"none"``: the design as is).
+    """
+
+    scan: int
+    steps: np.ndarray
+    t_s: np.ndarray
+    mirror: np.ndarray
+    range_m: np.ndarray
+    points: np.ndarray
+    ray_start: np.ndarray
+    ray_dir: np.ndarray
+    ray_offset: np.ndarray
+    truth_id: np.ndarray | None = None
+    calibration_id: str = "none"
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(n,) bool: beams with a return."""
+        return np.isfinite(self.range_m)
+
+    @property
+    def t_mid_s(self) -> float:
+        """Mean beam time of the scan [s]."""
+        return float(np.mean(self.t_s))
