@@ -37,6 +37,9 @@ __all__ = [
     "rotate_about_line",
     "pitch_about_pivot",
     "directions_from_bearings",
+    "incidence_angle",
+    "perturb_frames",
+    "EZ",
     "rot_x",
     "rot_y",
     "rot_z",
@@ -78,10 +81,16 @@ class Tol:
         Allowed ``|R^T R - I|`` and ``|det R - 1|`` of a rotation matrix [-].
     angle_rad : float
         Angles closer than this are the same (e.g. a zero rotation) [rad].
+    block_ahead_m : float
+        Smallest distance along a ray leaving a mirror at which another surface (a mirror,
+        the housing) counts as blocking it [m]. Coarser than ``ahead_m``: the ray starts
+        on a hit point computed by a ray-plane intersection, and a neighbour sharing that
+        edge (a chained mirror's joint) must not block it by round-off.
     """
 
     parallel: float = 1e-12
     ahead_m: float = 1e-12
+    block_ahead_m: float = 1e-9
     unit_norm: float = 1e-9
     rotation: float = 1e-6
     angle_rad: float = 1e-12
@@ -89,7 +98,10 @@ class Tol:
 
 #: The tolerances every module uses (``geometry.TOL.parallel`` etc.).
 TOL = Tol()
-_EPS = TOL.parallel
+
+#: The head frame's vertical (yaw axis, mirror ``up`` when deployed).
+EZ = np.array([0.0, 0.0, 1.0])
+EZ.setflags(write=False)
 
 
 def unit(v: np.ndarray) -> np.ndarray:
@@ -196,6 +208,15 @@ def directions_from_bearings(bearing: np.ndarray | float,
     return np.stack(np.broadcast_arrays(ce * np.cos(b), ce * np.sin(b), np.sin(e)), -1)
 
 
+def incidence_angle(dirs: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Angle of incidence [rad] of unit directions ``dirs (..., 3)`` on a plane of unit
+    ``normal`` ((3,) or (..., 3), either sign): ``arccos |d . n|`` in ``[0, pi/2]``, 0 at
+    normal incidence (the paper's gamma). Returns ``(...,)``."""
+    d = np.asarray(dirs, dtype=float)
+    n = np.asarray(normal, dtype=float)
+    return np.arccos(np.clip(np.abs(np.sum(d * n, axis=-1)), 0.0, 1.0))
+
+
 def rot_z(angle: np.ndarray | float) -> np.ndarray:
     """Rotation(s) about +z (yaw). Scalar -> (3, 3); ``(n,)`` -> ``(n, 3, 3)``."""
     a = np.asarray(angle, dtype=float)
@@ -237,7 +258,7 @@ def ray_plane_distance(
     num = (point - origins) @ normal
     with np.errstate(divide="ignore", invalid="ignore"):
         t = num / denom
-    return np.where((np.abs(denom) > _EPS) & (t > 1e-12), t, np.inf)
+    return np.where((np.abs(denom) > TOL.parallel) & (t > TOL.ahead_m), t, np.inf)
 
 
 def _circle_roots(origins: np.ndarray, dirs: np.ndarray, radius: float):
@@ -274,7 +295,7 @@ def ray_cylinder_hit(
     Used to check reflected beams against the lidar housing. Returns (n,) bool.
     """
     t0, t1, disc, c = _circle_roots(origins, dirs, radius)
-    enters = (disc > 0) & (t1 > 1e-9) & (t0 < t_max)
+    enters = (disc > 0) & (t1 > TOL.block_ahead_m) & (t0 < t_max)
     return np.where(c < 0, True, enters)
 
 
@@ -304,6 +325,47 @@ class Perturbation:
     @classmethod
     def from_array(cls, a: np.ndarray) -> Perturbation:
         return cls(float(a[0]), float(a[1]), float(a[2]))
+
+
+def perturb_frames(origin: np.ndarray, normal: np.ndarray, along: np.ndarray, up: np.ndarray,
+                   hinge_z: float, dalpha: np.ndarray | float, dbeta: np.ndarray | float,
+                   dd: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The mounting-error model (:class:`Perturbation`), vectorised over samples.
+
+    The one implementation: :meth:`MirrorPatch.perturbed` calls it with one sample, the
+    tolerance Monte Carlo with thousands. In order:
+
+    1. tilt by ``dbeta`` about the hinge axis (the line ``origin + hinge_z*up`` along
+       ``along``, right hand);
+    2. offset by ``dd`` along the outward normal (away from the lidar);
+    3. yaw by ``dalpha`` about the vertical (+z) through the lidar origin O.
+
+    Parameters
+    ----------
+    origin, normal, along, up : (3,) float
+        One patch's frame (head frame, ``up = normal x along``).
+    hinge_z : float
+        The hinge axis' offset along ``up`` [m].
+    dalpha, dbeta : float or (n,) float
+        Yaw and tilt errors [rad].
+    dd : float or (n,) float
+        Offset [m].
+
+    Returns
+    -------
+    origin, normal, along, up : (n, 3) float each (``n`` the broadcast length, 1 for scalars).
+    """
+    da, db, dd = (np.atleast_1d(np.asarray(x, dtype=float)) for x in (dalpha, dbeta, dd))
+    da, db, dd = np.broadcast_arrays(da, db, dd)
+    o0, n0, a0, u0 = (np.asarray(v, dtype=float) for v in (origin, normal, along, up))
+    pivot = o0 + hinge_z * u0
+    o = rotate_about_line(o0, pivot, a0, db)
+    nrm = rotate_about_axis(n0, a0, db)
+    up_ = rotate_about_axis(u0, a0, db)
+    outward = np.where((np.sum(o * nrm, -1) > 0)[:, None], nrm, -nrm)
+    o = o + dd[:, None] * outward
+    along_ = np.broadcast_to(a0, o.shape)
+    return tuple(rotate_about_axis(v, EZ, da) for v in (o, nrm, along_, up_))  # type: ignore[return-value]
 
 
 def _vec(v, name: str) -> tuple[float, float, float]:
@@ -336,9 +398,10 @@ class MirrorPatch:
         object.__setattr__(self, "origin", _vec(self.origin, f"{self.name}.origin"))
         n = np.asarray(_vec(self.normal, f"{self.name}.normal"))
         a = np.asarray(_vec(self.along, f"{self.name}.along"))
-        require(abs(np.linalg.norm(n) - 1) < 1e-9, f"{self.name}.normal", self.normal, "unit length")
-        require(abs(np.linalg.norm(a) - 1) < 1e-9, f"{self.name}.along", self.along, "unit length")
-        require(abs(n @ a) < 1e-9, f"{self.name}.along", self.along, "perpendicular to normal")
+        tol = TOL.unit_norm
+        require(abs(np.linalg.norm(n) - 1) < tol, f"{self.name}.normal", self.normal, "unit length")
+        require(abs(np.linalg.norm(a) - 1) < tol, f"{self.name}.along", self.along, "unit length")
+        require(abs(n @ a) < tol, f"{self.name}.along", self.along, "perpendicular to normal")
         object.__setattr__(self, "normal", tuple(map(float, n)))
         object.__setattr__(self, "along", tuple(map(float, a)))
         require(self.s_max > self.s_min, f"{self.name}.s_max", self.s_max, f"> s_min = {self.s_min}")
@@ -449,25 +512,27 @@ class MirrorPatch:
         """The patch turned by ``angle`` [rad] about its hinge axis (right hand about ``along``).
 
         ``hinge_z`` is kept in the patch's own coordinates, so repeated calls compose.
+        This is the mirror's own line (the axis of the mounting tilt ``dbeta``).
         """
-        R = matrix_from_axis_angle(self.along_, angle)
         pivot = self.origin_ + self.hinge_z * self.up_
-        moved = self.transformed(R, pivot - R @ pivot)
-        return moved
+        return replace(
+            self,
+            origin=tuple(rotate_about_line(self.origin_, pivot, self.along_, angle)),
+            normal=tuple(unit(rotate_about_axis(self.normal_, self.along_, angle))),
+        )
 
     def perturbed(self, p: Perturbation) -> MirrorPatch:
-        """Apply a mounting error: tilt about the hinge, then offset, then yaw about O.
+        """Apply a mounting error: tilt about the hinge, then offset, then yaw about O
+        (:func:`perturb_frames`, the only implementation of the model).
 
-        This is the only place perturbations are applied. The result remembers the
-        perturbation (composed additively, which is exact for one application on a
-        nominal mirror and first-order otherwise).
+        The result remembers the perturbation (composed additively, which is exact for one
+        application on a nominal mirror and first-order otherwise).
         """
-        m = self.rotated_about_hinge(p.dbeta)
-        n_out = m.normal_ if m.origin_ @ m.normal_ > 0 else -m.normal_
-        m = m.transformed(np.eye(3), p.dd * n_out)
-        m = m.transformed(rot_z(p.dalpha), np.zeros(3))
+        o, n, a, _ = perturb_frames(self.origin_, self.normal_, self.along_, self.up_,
+                                    self.hinge_z, p.dalpha, p.dbeta, p.dd)
         total = Perturbation(*(self.perturbation.as_array() + p.as_array()))
-        return replace(m, perturbation=total)
+        return replace(self, origin=tuple(o[0]), normal=tuple(unit(n[0])),
+                       along=tuple(unit(a[0])), perturbation=total)
 
 
 def reflect_rays(

@@ -361,3 +361,31 @@ def test_sensitivity_predicts_small_perturbation(design):
         pred = fd["dalpha"] * p[0] + fd["dbeta"] * p[1] + fd["dd"] * p[2]
         got = tr[i].bearing[0, :, 0] - base[i].bearing[0, :, 0]
         assert_allclose(got, pred, rtol=1e-3, atol=1e-10)
+
+
+def test_trace_mirror_is_the_perturbed_patch_traced_per_sample(design):
+    """_trace_mirror (all samples at once through geometry.perturb_frames) against
+    MirrorPatch.perturbed then reflect_rays / intersect, one sample at a time. Same model,
+    different evaluation order: ~1e-13 m on ~1 m points, 1e-12 rad on bearings."""
+    from nodlidar.analysis.tolerance import _trace_mirror
+    from nodlidar.geometry import directions_from_bearings
+
+    rng = np.random.default_rng(21)
+    n = 40
+    prob = _problem(design, ToleranceSpec(), [0.7, 3.0])
+    dl = np.zeros((n, 6))
+    for m, md in zip(design.mirrors, prob.mirrors, strict=True):
+        # large enough that some beams fall off their patch (on_patch is exercised)
+        dm = rng.normal(size=(n, 3)) * [5e-3, 1e-2, 2e-3]
+        tr = _trace_mirror(md, dm, dl, prob.ranges)
+        d0 = directions_from_bearings(design.lidar.bearing_from_step(m.steps))
+        for k in range(n):
+            p = m.patch.perturbed(Perturbation.from_array(dm[k]))
+            t, hit, out = reflect_rays(np.zeros_like(d0), d0, p.origin_, p.normal_)
+            assert_allclose(tr.on_patch[k], np.isfinite(p.intersect(np.zeros_like(d0), d0)[0]))
+            assert_allclose(tr.elevation[k], np.arcsin(out[:, 2]), rtol=0, atol=1e-12)
+            for j, r in enumerate(prob.ranges):
+                P = arc_point(hit, out, r)
+                assert_allclose(tr.points[k, :, j], P, rtol=0, atol=1e-12)
+                assert_allclose(tr.bearing[k, :, j], bearing_of(P), rtol=0, atol=1e-12)
+        assert not tr.on_patch.all() and tr.on_patch.any()

@@ -67,6 +67,8 @@ from ..geometry import (
     Perturbation,
     arc_point,
     bearing_of,
+    directions_from_bearings,
+    perturb_frames,
     ray_circle_exit,
     reflect,
     reflect_rays,
@@ -347,10 +349,6 @@ def mounted_patches(design: Design, perturbations: dict[str, Perturbation] | Non
     return [p.transformed(R.T, -R.T @ np.asarray(mount.offset, float)) for p in patches]
 
 
-def _dirs(theta: np.ndarray) -> np.ndarray:
-    return np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], -1)
-
-
 # ---------------------------------------------------------------------------------------
 # the batched path
 
@@ -403,12 +401,6 @@ def _problem(design: Design, tol: ToleranceSpec, ranges_m=None) -> _Problem:
                     ranges=np.atleast_1d(ranges))
 
 
-def _rodrigues(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rotate the fixed vector ``v (3,)`` by each of ``angle (n,)`` about unit ``axis``."""
-    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
-    return v * c + np.cross(axis, v) * s + axis * (axis @ v) * (1.0 - c)
-
-
 @dataclass(frozen=True, eq=False)
 class SampleTrace:
     """One mirror's beams traced for ``n`` sampled builds (lidar frame).
@@ -442,27 +434,18 @@ class SampleTrace:
 def _trace_mirror(md: _MirrorData, dm: np.ndarray, dl: np.ndarray, ranges: np.ndarray,
                   keep_points: bool = True) -> SampleTrace:
     """Batched equivalent of ``patch.perturbed(...)`` then ``.transformed(...)`` + trace."""
-    n = len(dm)
-    dalpha, dbeta, dd = dm[:, 0], dm[:, 1], dm[:, 2]
-    # 1. tilt about the hinge axis (origin + hinge_z*up, direction along)
-    pivot = md.origin + md.hinge_z * md.up
-    o = pivot + _rodrigues(md.origin - pivot, md.along, dbeta)
-    nrm = _rodrigues(md.normal, md.along, dbeta)
-    up = _rodrigues(md.up, md.along, dbeta)
-    along = np.broadcast_to(md.along, (n, 3))
-    # 2. offset along the outward normal (away from the lidar)
-    outward = np.where((np.sum(o * nrm, -1) > 0)[:, None], nrm, -nrm)
-    o = o + dd[:, None] * outward
-    # 3. yaw about the lidar axis through O; 4. into the mis-mounted lidar's frame
+    # 1-3. the mounting-error model, one frame per sample (the same function as
+    # MirrorPatch.perturbed); 4. into the mis-mounted lidar's frame
+    o, nrm, along, up = perturb_frames(md.origin, md.normal, md.along, md.up, md.hinge_z,
+                                       dm[:, 0], dm[:, 1], dm[:, 2])
     RmT = np.swapaxes(_mount_rotation(dl[:, 0], dl[:, 1], dl[:, 5]), -1, -2)    # (n,3,3)
-    Rt = RmT @ rot_z(dalpha)
     off = RmT @ dl[:, 2:5, None]
-    o = (Rt @ o[:, :, None] - off)[:, :, 0]
-    nrm = (Rt @ nrm[:, :, None])[:, :, 0]
-    along = (Rt @ along[:, :, None])[:, :, 0]
-    up = (Rt @ up[:, :, None])[:, :, 0]
+    o = (RmT @ o[:, :, None] - off)[:, :, 0]
+    nrm = (RmT @ nrm[:, :, None])[:, :, 0]
+    along = (RmT @ along[:, :, None])[:, :, 0]
+    up = (RmT @ up[:, :, None])[:, :, 0]
     # trace every beam (from O) on every sampled plane
-    d0 = _dirs(md.theta)                                  # (b, 3)
+    d0 = directions_from_bearings(md.theta)               # (b, 3)
     t = np.sum(o * nrm, -1)[:, None] / (nrm @ d0.T)       # (n, b) distance to the plane
     hit = t[..., None] * d0[None]                         # (n, b, 3)
     out = reflect(np.broadcast_to(d0, hit.shape), nrm[:, None, :])
@@ -886,7 +869,8 @@ def _logging_disabled():
 
 
 def _bearing_at(patch: MirrorPatch, theta: np.ndarray, D: float) -> np.ndarray:
-    _, hit, out = reflect_rays(np.zeros((len(theta), 3)), _dirs(theta), patch.origin_, patch.normal_)
+    _, hit, out = reflect_rays(np.zeros((len(theta), 3)), directions_from_bearings(theta),
+                               patch.origin_, patch.normal_)
     return bearing_of(arc_point(hit, out, D))
 
 
@@ -985,7 +969,7 @@ def sensitivities(design: Design, D: float | None = None, h_rad: float = 1e-6,
         # closed forms from eq. 1
         n = patch.normal_
         n_out = n if patch.origin_ @ n > 0 else -n
-        u = _dirs(th)
+        u = directions_from_bearings(th)
         un = u @ n
         theta_r = np.arccos(np.clip(np.abs(un), 0.0, 1.0))
         oz = patch.standoff / np.cos(theta_r)
