@@ -57,7 +57,7 @@ def main() -> dict[str, float]:
 
     def full():
         return assemble(model, batch, nod, mirror_left=mirrors, mirror_right=mirrors,
-                        frame="world", robot2sensor=r2s, world2robot=track)
+                        frame="world", robot_from_sensor=r2s, world_from_robot=track)
 
     theta = lidar.bearing_from_step(batch.steps)
     r = batch.ranges_m

@@ -56,19 +56,20 @@ def test_matches_simulator_truth_world_frame_moving_robot():
                                 sensor=SensorPose((0.2, -0.1, 0.4), yaw, v, 0.0))
     sim = SceneSimulator(DESIGN, scene, TABLE_I_PERTURBATIONS)
     batch, truths = simulate(sim, 6)
-    # robot2sensor: sensor 0.25 m ahead of and 0.3 m above the robot origin, yawed
-    r2s = np.eye(4)
-    r2s[:3, :3] = SensorPose((0, 0, 0), yaw).rotation
-    r2s[:3, 3] = (0.25, 0.0, 0.3)
-    # world2robot(t) = world2sensor(t) @ inv(robot2sensor), sampled every 0.1 s
+    # robot_from_sensor: sensor 0.25 m ahead of and 0.3 m above the robot origin, yawed
+    robot_from_sensor = np.eye(4)
+    robot_from_sensor[:3, :3] = SensorPose((0, 0, 0), yaw).rotation
+    robot_from_sensor[:3, 3] = (0.25, 0.0, 0.3)
+    # world_from_robot(t) = world_from_sensor(t) @ inv(robot_from_sensor), every 0.1 s
     tp = np.arange(0.0, 1.01, 0.1)
-    w2s = np.zeros((len(tp), 4, 4))
-    w2s[:, :3, :3] = scene.sensor.rotation
-    w2s[:, :3, 3] = np.array(scene.sensor.position_m) + np.outer(tp, v)
-    w2s[:, 3, 3] = 1
-    poses = PoseTrack(tp, w2s @ np.linalg.inv(r2s))
+    world_from_sensor = np.zeros((len(tp), 4, 4))
+    world_from_sensor[:, :3, :3] = scene.sensor.rotation
+    world_from_sensor[:, :3, 3] = np.array(scene.sensor.position_m) + np.outer(tp, v)
+    world_from_sensor[:, 3, 3] = 1
+    poses = PoseTrack(tp, world_from_sensor @ np.linalg.inv(robot_from_sensor))
     model = AssemblyModel.from_design(DESIGN, TABLE_I_PERTURBATIONS, "table-1")
-    pc = assemble(model, batch, nod_samples(), frame="world", robot2sensor=r2s, world2robot=poses)
+    pc = assemble(model, batch, nod_samples(), frame="world",
+                  robot_from_sensor=robot_from_sensor, world_from_robot=poses)
     truth = np.concatenate([t.point_world for t in truths])
     hit = np.isfinite(truth[:, 0])
     assert len(pc) == hit.sum() > 3000
@@ -177,7 +178,7 @@ def test_error_codes_and_uncovered_beams_dropped():
     assert np.isfinite(pc.xyz).all()
 
 
-def test_robot_frame_is_robot2sensor_applied():
+def test_robot_frame_is_robot_from_sensor_applied():
     sim = SceneSimulator(DESIGN, wall_scene(1.5))
     batch, _ = simulate(sim, 2)
     model = AssemblyModel.from_design(DESIGN)
@@ -185,9 +186,10 @@ def test_robot_frame_is_robot2sensor_applied():
     T[:3, :3] = rot_y(0.2)
     T[:3, 3] = (0.1, -0.2, 0.5)
     s = assemble(model, batch, 0.05)
-    r = assemble(model, batch, 0.05, frame="robot", robot2sensor=T)
+    r = assemble(model, batch, 0.05, frame="robot", robot_from_sensor=T)
     assert_allclose(r.xyz, s.xyz @ T[:3, :3].T + T[:3, 3], atol=1e-12, rtol=0)
-    w = assemble(model, batch, 0.05, frame="world", robot2sensor=T, world2robot=np.eye(4))
+    w = assemble(model, batch, 0.05, frame="world", robot_from_sensor=T,
+                 world_from_robot=np.eye(4))
     assert_allclose(w.xyz, r.xyz, atol=1e-12, rtol=0)
 
 
@@ -204,14 +206,55 @@ def test_bad_input():
     model = AssemblyModel.from_design(DESIGN)
     with pytest.raises(ParameterError, match="frame"):
         assemble(model, batch, 0.0, frame="map")
-    with pytest.raises(ParameterError, match="robot2sensor"):
+    with pytest.raises(ParameterError, match="robot_from_sensor"):
         assemble(model, batch, 0.0, frame="robot")
-    with pytest.raises(ParameterError, match="robot2sensor"):
-        assemble(model, batch, 0.0, frame="robot", robot2sensor=2 * np.eye(4))
-    with pytest.raises(ParameterError, match="world2robot"):
-        assemble(model, batch, 0.0, frame="world", robot2sensor=np.eye(4))
+    with pytest.raises(ParameterError, match="robot_from_sensor"):
+        assemble(model, batch, 0.0, frame="robot", robot_from_sensor=2 * np.eye(4))
+    with pytest.raises(ParameterError, match="world_from_robot"):
+        assemble(model, batch, 0.0, frame="world", robot_from_sensor=np.eye(4))
+    flip = np.diag([1.0, 1.0, -1.0, 1.0])  # a reflection: orthonormal, det -1
+    with pytest.raises(ParameterError, match=r"det\(world_from_robot\(t\)\[1\]"):
+        assemble(model, batch, 0.0, frame="world", robot_from_sensor=np.eye(4),
+                 world_from_robot=lambda t: np.where(np.arange(len(t))[:, None, None] == 1,
+                                                     flip, np.eye(4)))
     with pytest.raises(ParameterError, match="mirror state"):
         assemble(model, batch, 0.0, mirror_left="half")
+
+
+def test_old_transform_keywords_refused_with_hint():
+    """robot2sensor/world2robot were renamed: the old keywords answer with the new name
+    and its meaning, never silently ignored or mapped (they read the wrong way round)."""
+    sim = SceneSimulator(DESIGN, wall_scene(1.5))
+    batch, _ = simulate(sim, 1)
+    model = AssemblyModel.from_design(DESIGN)
+    with pytest.raises(TypeError, match="robot2sensor was renamed robot_from_sensor "
+                                        r"\(it maps sensor coordinates into the robot frame\)"):
+        assemble(model, batch, 0.0, frame="robot", robot2sensor=np.eye(4))
+    with pytest.raises(TypeError, match="world2robot was renamed world_from_robot"):
+        assemble(model, batch, 0.0, frame="world", robot_from_sensor=np.eye(4),
+                 world2robot=np.eye(4))
+    with pytest.raises(TypeError, match="unexpected keyword argument 'robot_frm_sensor'"):
+        assemble(model, batch, 0.0, robot_frm_sensor=np.eye(4))
+    with pytest.raises(TypeError, match="world2robot was renamed world_from_robot"):
+        PoseTrack([0.0], world2robot=np.eye(4)[None])
+    track = PoseTrack(t_s=[0.0], world_from_robot=np.eye(4)[None])
+    assert_allclose(track.apply([0.0], np.ones((1, 3))), np.ones((1, 3)), atol=0, rtol=0)
+    with pytest.raises(TypeError, match="world_from_robot"):
+        PoseTrack([0.0])
+
+
+def test_pose_track_checks_every_pose():
+    """Each keyframe goes through frames.check_transform: a reflection or a scaled
+    rotation anywhere in the track is refused, naming its index."""
+    T = np.tile(np.eye(4), (3, 1, 1))
+    T[2, :3, :3] = np.diag([1.0, -1.0, 1.0])
+    with pytest.raises(ParameterError, match=r"det\(world_from_robot\[2\]"):
+        PoseTrack([0.0, 1.0, 2.0], T)
+    T[2, :3, :3] = 1.01 * np.eye(3)
+    with pytest.raises(ParameterError, match=r"world_from_robot\[2\]\[:3, :3\]"):
+        PoseTrack([0.0, 1.0, 2.0], T)
+    with pytest.raises(ParameterError, match="poses.shape"):
+        PoseTrack([0.0, 1.0], np.tile(np.eye(4), (3, 1, 1)))
 
 
 def test_pose_track_matches_scipy_slerp():

@@ -114,7 +114,7 @@ CASES = [
     ("report", [P, "--scheduler", "not a url"], "--scheduler"),
     ("report", [P, "--scheduler", "{HTTP}", "--out", "{T}/rep"], "--scheduler"),
     ("scan", ["--sim-rate", "1e-9"], "--sim-rate"),
-    ("scan", ["--robot2sensor", "1e308", "0", "0", "0", "0", "0"], "--robot2sensor"),
+    ("scan", ["--robot-from-sensor", "1e308", "0", "0", "0", "0", "0"], "--robot-from-sensor"),
     ("scan", ["--out", "{T}"], "--out"),
     ("scan", ["--out", "{T}/missing/x.ply"], "--out"),
     ("scan", ["--out", "{EXISTING}"], "--out"),

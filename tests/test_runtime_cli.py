@@ -182,16 +182,27 @@ def test_record_seconds_and_frames(capsys, tmp_path):
     assert 9 <= n <= 12  # 1 s of 10 Hz scans, counted from the first scan's stamp
     pose = ["1", "2", "0.5", "0", "0", "90"]
     code, out, err = run(capsys, "replay", str(tmp_path / "b"), "--out", str(tmp_path / "w.ply"),
-                         "--frame", "world", "--world2robot", *pose)
+                         "--frame", "world", "--world-from-robot", *pose)
     assert code == 0, err
     code, out, err = run(capsys, "replay", str(tmp_path / "b"), "--out", str(tmp_path / "s.ply"))
+    # both transforms: world_from_robot @ robot_from_sensor (the sensor 0.1 m ahead of and
+    # 0.3 m above the robot origin, then the robot yawed 90 deg); the other order would
+    # put the offset (0.1, 0, 0.3) into the world unturned
+    code, out, err = run(capsys, "replay", str(tmp_path / "b"), "--out", str(tmp_path / "c.ply"),
+                         "--frame", "world", "--world-from-robot", *pose,
+                         "--robot-from-sensor", "0.1", "0", "0.3", "0", "0", "0")
+    assert code == 0, err
     w, s = read_cloud(tmp_path / "w.ply"), read_cloud(tmp_path / "s.ply")
+    c = read_cloud(tmp_path / "c.ply")
     # yaw 90 deg: (x, y, z) -> (-y, x, z) + (1, 2, 0.5)
     expected = np.stack([-s.xyz[:, 1] + 1, s.xyz[:, 0] + 2, s.xyz[:, 2] + 0.5], -1)
     # both files hold float32 x y z: each is within half a float32 ulp (<= 2**-21 m at
     # |x| < 16 m) of the exact value
     assert_allclose(w.xyz, expected, atol=2 * 2.0**-21, rtol=0)
-    assert w.frame == "world"
+    assert w.frame == "world" and c.frame == "world"
+    # robot_from_sensor first: (x + 0.1, y, z + 0.3), then the yaw and the offset
+    expected = np.stack([-s.xyz[:, 1] + 1, s.xyz[:, 0] + 0.1 + 2, s.xyz[:, 2] + 0.3 + 0.5], -1)
+    assert_allclose(c.xyz, expected, atol=2 * 2.0**-21, rtol=0)
 
 
 @pytest.mark.parametrize("argv, what", [
@@ -202,7 +213,16 @@ def test_record_seconds_and_frames(capsys, tmp_path):
     (["record", "--out", "{tmp}", "--scans", "5"], "--out"),
     (["record", "--out", "{tmp}/new", "--scans", "0"], "--scans"),
     (["replay", "{tmp}/nothing"], "not found"),
-    (["scan", "--robot2sensor", "0", "0", "0", "0", "0", "nan"], "--robot2sensor"),
+    (["scan", "--robot-from-sensor", "0", "0", "0", "0", "0", "nan"], "--robot-from-sensor"),
+    (["replay", "{tmp}/nothing", "--world-from-robot", "0", "0", "0", "0", "400", "0"],
+     "--world-from-robot"),
+    # the old spellings (renamed: they read the wrong way round) answer with the new one
+    (["scan", "--robot2sensor", "0", "0", "0", "0", "0", "0"],
+     "--robot2sensor was renamed --robot-from-sensor (it maps sensor coordinates into the "
+     "robot frame)"),
+    (["record", "--out", "{tmp}/new", "--world2robot", "1", "2"],
+     "--world2robot was renamed --world-from-robot (it maps robot coordinates into the world "
+     "frame)"),
 ])
 def test_bad_input_one_line_exit_2(capsys, tmp_path, argv, what):
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import math
 from typing import TYPE_CHECKING
 
@@ -127,15 +128,35 @@ def sim_perturbations(name: str):
     return dict(TABLE_I_PERTURBATIONS)
 
 
+class _RenamedFlag(argparse.Action):
+    """A flag that was renamed: given, it answers with a one-line hint naming the new
+    spelling and what it means, and exit status 2 (it is hidden from --help)."""
+
+    def __init__(self, option_strings, dest, **kw):
+        kw.update(nargs="*", help=argparse.SUPPRESS, default=argparse.SUPPRESS)
+        super().__init__(option_strings, dest, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from ..frames import renamed_hint  # the error path only: --help imports no numpy
+
+        parser.error(renamed_hint(self.dest, "--"))
+
+
 def add_frame_args(p) -> None:
+    """--frame, --robot-from-sensor and --world-from-robot (the old --robot2sensor and
+    --world2robot answer with a hint)."""
     p.add_argument("--frame", choices=("sensor", "robot", "world"), default="sensor",
                    help="output frame (default sensor)")
-    p.add_argument("--robot2sensor", type=float, nargs=6,
-                   metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
-                   default=None, help="sensor pose on the robot [m, deg] (frames robot/world)")
-    p.add_argument("--world2robot", type=float, nargs=6,
-                   metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
-                   default=None, help="robot pose in the world [m, deg] (frame world)")
+    p.add_argument("--robot-from-sensor", type=float, nargs=6,
+                   metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"), default=None,
+                   help="sensor pose on the robot [m, deg]: maps sensor coordinates into the "
+                        "robot frame (frames robot/world)")
+    p.add_argument("--world-from-robot", type=float, nargs=6,
+                   metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"), default=None,
+                   help="robot pose in the world [m, deg]: maps robot coordinates into the "
+                        "world frame (frame world)")
+    for old in ("robot2sensor", "world2robot"):
+        p.add_argument(f"--{old}", dest=old, action=_RenamedFlag)
 
 
 def pose_matrix(v, name: str) -> np.ndarray:
@@ -158,8 +179,10 @@ def pose_matrix(v, name: str) -> np.ndarray:
 
 
 def frame_kwargs(args) -> dict:
-    return {"frame": args.frame, "robot2sensor": pose_matrix(args.robot2sensor, "--robot2sensor"),
-            "world2robot": pose_matrix(args.world2robot, "--world2robot")}
+    """The :func:`~nodlidar.runtime.assembly.assemble` keywords of the frame options."""
+    return {"frame": args.frame,
+            "robot_from_sensor": pose_matrix(args.robot_from_sensor, "--robot-from-sensor"),
+            "world_from_robot": pose_matrix(args.world_from_robot, "--world-from-robot")}
 
 
 def check_out(path: str, field: str = "--out", *, force: bool = True) -> None:

@@ -11,10 +11,11 @@ Pure functions over arrays, vectorised over every beam of many scans at once:
   beam goes straight), in between -> the point is dropped and counted (the glass was
   moving; its geometry is unknown);
 * error codes (NaN ranges) are filtered out;
-* points are given in the sensor frame, or mapped to the robot frame with ``robot2sensor``
-  and the world frame with ``world2robot`` poses over time (per point by its own time).
-  Transforms are named ``A2B``: they map coordinates in frame B into frame A
-  (docs/conventions.md).
+* points are given in the sensor frame, or mapped to the robot frame with
+  ``robot_from_sensor`` and the world frame with ``world_from_robot`` poses over time (per
+  point by its own time). Transforms are named ``<to>_from_<from>``: ``robot_from_sensor``
+  maps coordinates in the sensor frame into the robot frame (:mod:`nodlidar.frames`,
+  docs/conventions.md); each is checked by :func:`nodlidar.frames.check_transform`.
 
 Times are in whatever clock the scan times and the actuator samples share (the driver's
 ``Scan.stamp_s`` after :meth:`UrgDriver.sync_clock` with the actuators' time source).
@@ -31,7 +32,9 @@ import numpy as np
 from ..beams import DIRECT, BeamModel  # noqa: F401  (BeamModel: type of fields)
 from ..dynamixel import RAD_PER_TICK
 from ..errors import ParameterError, require
-from .actuators import MirrorLiftProfile, interpolate_angle
+from ..frames import check_transform, refuse_renamed
+from ..geometry import TOL, rotate_about_axis
+from .servo_angles import MirrorLiftProfile, interpolate_angle, lift_profiles
 
 if TYPE_CHECKING:
     from ..geometry import Perturbation
@@ -208,34 +211,46 @@ class AngleSamples:
         return interpolate_angle(self.t_s, self.angle_rad, t, outside=outside)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, init=False)
 class PoseTrack:
-    """Robot poses over time: ``world2robot`` (k, 4, 4) at increasing ``t_s`` (k,) [s].
+    """Robot poses over time: ``world_from_robot`` (k, 4, 4) at increasing ``t_s`` (k,) [s]
+    (each maps robot coordinates into the world frame; checked by
+    :func:`~nodlidar.frames.check_transform`).
 
     Interpolated per query time: translation linearly, rotation by slerp; clamped outside.
+    The old keyword ``world2robot`` is refused with a hint (``TypeError``).
     """
 
     t_s: np.ndarray
-    world2robot: np.ndarray
+    world_from_robot: np.ndarray
+
+    def __init__(self, t_s: Any, world_from_robot: Any = None, **renamed: Any) -> None:
+        refuse_renamed(renamed, "PoseTrack")
+        if world_from_robot is None:
+            raise TypeError("PoseTrack() missing 1 required argument: 'world_from_robot'")
+        object.__setattr__(self, "t_s", t_s)
+        object.__setattr__(self, "world_from_robot", world_from_robot)
+        self.__post_init__()
 
     def __post_init__(self) -> None:
-        t, T = np.asarray(self.t_s, float), np.asarray(self.world2robot, float)
-        require(T.ndim == 3 and T.shape[1:] == (4, 4) and t.shape == (T.shape[0],),
-                "poses.shape", (t.shape, T.shape), "(k,) times and (k, 4, 4) transforms")
+        t = np.asarray(self.t_s, float)
+        T = check_transform(self.world_from_robot, "world_from_robot", stack=True)
+        require(t.shape == (T.shape[0],), "poses.shape", (t.shape, T.shape),
+                "(k,) times and (k, 4, 4) transforms")
         require(t.size >= 1 and bool(np.all(np.diff(t) > 0)), "poses.t_s", "not increasing",
                 "strictly increasing times")
 
     def at(self, t: np.ndarray) -> np.ndarray:
-        """``(n, 4, 4)`` world2robot at times ``t`` (n,) [s].
+        """``(n, 4, 4)`` world_from_robot at times ``t`` (n,) [s].
 
         Slerp written out (``R_i exp(f w_i)``, ``w_i`` the rotation vector from pose i to
-        i+1, Rodrigues' formula vectorised over points): scipy's per-point Rotation
-        products cost more than the rest of assembly together.
+        i+1, :func:`~nodlidar.geometry.rotate_about_axis` with one axis per point): scipy's
+        per-point Rotation products cost more than the rest of assembly together.
         """
         from scipy.spatial.transform import Rotation
 
         t = np.asarray(t, dtype=float)
-        T = np.asarray(self.world2robot, float)
+        T = np.asarray(self.world_from_robot, float)
         ts = np.asarray(self.t_s, float)
         out = np.zeros((t.size, 4, 4))
         out[:, 3, 3] = 1.0
@@ -247,17 +262,10 @@ class PoseTrack:
         w = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()  # (k-1, 3)
         i = np.clip(np.searchsorted(ts, tq, side="right") - 1, 0, ts.size - 2)
         f = (tq - ts[i]) / (ts[i + 1] - ts[i])
-        v = f[:, None] * w[i]
-        th = np.linalg.norm(v, axis=1)
-        safe = np.where(th > 1e-12, th, 1.0)
-        a, b = np.sin(th) / safe, (1.0 - np.cos(th)) / safe**2
-        a = np.where(th > 1e-12, a, 1.0)
-        b = np.where(th > 1e-12, b, 0.5)
-        K = np.zeros((t.size, 3, 3))
-        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-        K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-        rel = np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
-        out[:, :3, :3] = R[i] @ rel
+        k, th = self._axis_angle(f[:, None] * w[i])
+        # rows of rel^T = the unit vectors e_j turned about each point's own axis
+        rel_T = rotate_about_axis(np.eye(3)[None], k[:, None, :], th[:, None])  # (n, 3, 3)
+        out[:, :3, :3] = R[i] @ rel_T.transpose(0, 2, 1)
         for j in range(3):  # three columns, not a per-point loop
             out[:, j, 3] = np.interp(tq, ts, T[:, j, 3])
         return out
@@ -271,7 +279,7 @@ class PoseTrack:
 
         t = np.asarray(t, dtype=float)
         p = np.asarray(p, dtype=float)
-        T = np.asarray(self.world2robot, float)
+        T = np.asarray(self.world_from_robot, float)
         ts = np.asarray(self.t_s, float)
         if ts.size == 1:
             return p @ T[0, :3, :3].T + T[0, :3, 3]
@@ -280,17 +288,21 @@ class PoseTrack:
         w = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()
         i = np.clip(np.searchsorted(ts, tq, side="right") - 1, 0, ts.size - 2)
         f = (tq - ts[i]) / (ts[i + 1] - ts[i])
-        v = f[:, None] * w[i]  # rotation vector from keyframe i, (n, 3)
-        th = np.linalg.norm(v, axis=1)
-        safe = np.where(th > 1e-12, th, 1.0)
-        k = v / safe[:, None]
-        c, s = np.cos(th)[:, None], np.sin(th)[:, None]
-        q = p * c + np.cross(k, p) * s + k * (np.sum(k * p, axis=1)[:, None] * (1.0 - c))
+        k, th = self._axis_angle(f[:, None] * w[i])  # rotation from keyframe i
+        q = rotate_about_axis(p, k, th)
         Ri = R[i]  # (n, 3, 3)
         out = Ri[:, :, 0] * q[:, :1] + Ri[:, :, 1] * q[:, 1:2] + Ri[:, :, 2] * q[:, 2:]
         for j in range(3):
             out[:, j] += np.interp(tq, ts, T[:, j, 3])
         return out
+
+    @staticmethod
+    def _axis_angle(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rotation vectors ``v`` (n, 3) -> unit axes (n, 3) and angles (n,) [rad]; a
+        rotation below ``TOL.angle_rad`` gets a zero axis (the identity either way)."""
+        th = np.linalg.norm(v, axis=1)
+        safe = np.where(th > TOL.angle_rad, th, 1.0)
+        return v / safe[:, None], th
 
 
 @dataclass(frozen=True, eq=False)
@@ -311,6 +323,9 @@ class AssemblyModel:
     range_offset_m, range_scale : float
         The lidar's calibrated range model ``r_measured = (1 + range_scale) r +
         range_offset_m`` [m, -]; :func:`assemble` inverts it before projecting (0, 0: none).
+    lift_left, lift_right : MirrorLiftProfile
+        The design's lift-servo profiles (:func:`~nodlidar.runtime.servo_angles.lift_profiles`):
+        what :func:`assemble` uses when it is given none.
     """
 
     deployed: BeamModel
@@ -322,6 +337,8 @@ class AssemblyModel:
     calibration_id: str = "none"
     range_offset_m: float = 0.0
     range_scale: float = 0.0
+    lift_left: MirrorLiftProfile | None = None
+    lift_right: MirrorLiftProfile | None = None
 
     @classmethod
     def from_design(cls, design: Design,
@@ -367,7 +384,8 @@ class AssemblyModel:
                 "a finite scale error within +-0.5")
         return cls(deployed, design.beam_model(perts, mirrors_deployed=False), side,
                    clear, design.spec.name, design_hash(design.spec),
-                   calibration_id if (perts or offset or scale) else "none", offset, scale)
+                   calibration_id if (perts or offset or scale) else "none", offset, scale,
+                   *lift_profiles(design))
 
     @property
     def lidar(self):
@@ -413,22 +431,15 @@ def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
             + T[:, :3, 3])
 
 
-def _check_transform(T, name: str) -> np.ndarray:
-    T = np.asarray(T, dtype=float)
-    require(T.shape == (4, 4) and np.allclose(T[3], [0, 0, 0, 1])
-            and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6),
-            name, T.shape, "a rigid 4x4 homogeneous transform")
-    return T
-
-
 def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
              mirror_left=None, mirror_right=None,
              lift_left: MirrorLiftProfile | None = None,
              lift_right: MirrorLiftProfile | None = None,
              lift_tolerance_rad: float = LIFT_TOLERANCE_RAD,
-             frame: str = "sensor", robot2sensor=None,
-             world2robot: PoseTrack | Callable[[np.ndarray], np.ndarray] | np.ndarray | None = None,
-             nod_outside: str = "nan") -> PointCloud:
+             frame: str = "sensor", robot_from_sensor: np.ndarray | None = None,
+             world_from_robot: PoseTrack | Callable[[np.ndarray], np.ndarray] | np.ndarray
+             | None = None,
+             nod_outside: str = "nan", **renamed: Any) -> PointCloud:
     """Assemble scans into a point cloud.
 
     Parameters
@@ -442,14 +453,19 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
     mirror_left, mirror_right : samples, "deployed", "lifted" or None
         Lift-servo samples of each side (None = deployed throughout).
     lift_left, lift_right : MirrorLiftProfile
-        Deployed/lifted servo angles of each side (default ``MirrorLiftProfile()``).
+        Deployed/lifted servo angles of each side (default: the design's,
+        ``model.lift_left`` / ``model.lift_right``).
     lift_tolerance_rad : float
         How close to an end angle counts as at it [rad].
     frame : {"sensor", "robot", "world"}
-    robot2sensor : (4, 4) array
-        Maps sensor coordinates into the robot frame (needed for robot and world).
-    world2robot : PoseTrack, callable t (n,) -> (n, 4, 4), or (4, 4) array
+    robot_from_sensor : (4, 4) array
+        Maps sensor coordinates into the robot frame (needed for robot and world); the
+        sensor's pose on the robot.
+    world_from_robot : PoseTrack, callable t (n,) -> (n, 4, 4), or (4, 4) array
         Robot pose(s) (maps robot coordinates into the world), evaluated per point time.
+        Every transform is checked by :func:`~nodlidar.frames.check_transform` (rigid,
+        no reflection). The old keywords ``robot2sensor``/``world2robot`` are refused
+        with a hint (``TypeError``).
     nod_outside : {"nan", "clamp", "extrapolate"}
         Beams outside the nod samples' time span: dropped (default), or given the end
         sample's / extrapolated angle.
@@ -459,12 +475,15 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
     PointCloud
         Only valid points; ``meta`` holds the :class:`AssemblyStats` counts.
     """
+    refuse_renamed(renamed, "assemble")
     require(frame in FRAMES, "frame", frame, ", ".join(FRAMES))
     if frame in ("robot", "world"):
-        require(robot2sensor is not None, "robot2sensor", None, f"a 4x4 transform for frame {frame!r}")
-        robot2sensor = _check_transform(robot2sensor, "robot2sensor")
+        require(robot_from_sensor is not None, "robot_from_sensor", None,
+                f"a 4x4 transform for frame {frame!r}")
+        robot_from_sensor = check_transform(robot_from_sensor, "robot_from_sensor")
     if frame == "world":
-        require(world2robot is not None, "world2robot", None, "poses for frame 'world'")
+        require(world_from_robot is not None, "world_from_robot", None,
+                "poses for frame 'world'")
     lidar = model.lidar
     steps = np.asarray(scans.steps)
     r = np.asarray(scans.ranges_m, dtype=float)
@@ -489,8 +508,8 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
     refl = np.flatnonzero(mirror != DIRECT)
     if refl.size:
         tr = t[refl]
-        left = _side_state(mirror_left, tr, lift_left or MirrorLiftProfile(), lift_tolerance_rad)
-        right = _side_state(mirror_right, tr, lift_right or MirrorLiftProfile(), lift_tolerance_rad)
+        left = _side_state(mirror_left, tr, lift_left or model.lift_left, lift_tolerance_rad)
+        right = _side_state(mirror_right, tr, lift_right or model.lift_right, lift_tolerance_rad)
         state[refl] = np.where(model.mirror_side[mirror[refl]] == 0, left, right)
     moving = (state == BETWEEN) & have_nod
     n_moving = int(moving.sum())
@@ -511,17 +530,20 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
         xyz = model.deployed.points(steps, r, nod_rad)
 
     if frame in ("robot", "world"):
-        xyz = _apply(robot2sensor, xyz)
+        xyz = _apply(robot_from_sensor, xyz)
     if frame == "world":
-        if isinstance(world2robot, PoseTrack):
+        W: np.ndarray | None
+        if isinstance(world_from_robot, PoseTrack):
             W = None
-            xyz = world2robot.apply(t, xyz)
-        elif callable(world2robot):
-            W = np.asarray(world2robot(t), dtype=float)
+            xyz = world_from_robot.apply(t, xyz)
+        elif callable(world_from_robot):
+            W = np.asarray(world_from_robot(t), dtype=float)
             if W.shape not in ((4, 4), (len(t), 4, 4)):
-                raise ParameterError("world2robot(t).shape", W.shape, f"(4, 4) or ({len(t)}, 4, 4)")
+                raise ParameterError("world_from_robot(t).shape", W.shape,
+                                     f"(4, 4) or ({len(t)}, 4, 4)")
+            W = check_transform(W, "world_from_robot(t)", stack=W.ndim == 3)
         else:
-            W = _check_transform(world2robot, "world2robot")
+            W = check_transform(world_from_robot, "world_from_robot")
         if W is not None:
             xyz = _apply(W, xyz)
 
