@@ -72,6 +72,11 @@ def test_connect_and_sweep(tmp_path):
     assert np.isfinite(cloud.xyz).all()
     # the mirrors are deployed: both direct and reflected beams are in the cloud
     assert (cloud.mirror >= 0).any() and (cloud.mirror < 0).any()
+    # robot frame: the same points moved by the script's robot_from_sensor (a translation);
+    # each file holds float32 x y z, within half an ulp (<= 2**-21 m below 16 m) of exact
+    on_robot = read_cloud(out / "sweep_robot.ply")
+    assert on_robot.frame == "robot" and len(on_robot) == len(cloud)
+    assert_allclose(on_robot.xyz, cloud.xyz + [0.1, 0.0, 0.5], atol=2 * 2.0**-21, rtol=0)
 
 
 @pytest.mark.slow
