@@ -182,7 +182,8 @@ def test_window_map_answers_as_the_full_map_within_its_window():
     assert short.n_keys == sum(len(k) for k in win._keys[-3:])
 
 
-def test_batched_voxel_grid_equals_one_evaluation_per_velocity():
+@pytest.mark.parametrize("bins_per_point", [0.0, 8.0, 1e9])
+def test_batched_voxel_grid_equals_one_evaluation_per_velocity(bins_per_point):
     # the batched pass (one sort of an (m, n) key array) against eq. 12 evaluated velocity by
     # velocity (voxel_entropy, itself checked against an independent oracle in
     # test_tracking.py): same pixels, same counts -> equal to rounding of the float sums
@@ -192,7 +193,8 @@ def test_batched_voxel_grid_equals_one_evaluation_per_velocity():
     P = rng.normal(size=(800, 3)) * 0.2
     T = rng.uniform(0, 4, 800)
     W = rng.normal(size=(25, 2)) * 0.1
-    a = _voxel_entropy_grid(P[:, :2], T, W, 4.0, 0.03, 0.01)
+    # bins_per_point 0: the sorted runs; 1e9: the bincount; 8: the default choice
+    a = _voxel_entropy_grid(P[:, :2], T, W, 4.0, 0.03, 0.01, bins_per_point)
     b = [voxel_entropy(compensate(P, T, w, 4.0) + [0.01, 0.01, 0.0], 0.03) for w in W]
     assert_allclose(a, b, rtol=1e-12)
 

@@ -163,11 +163,14 @@ def voxel_entropy(points: np.ndarray, voxel_m: float, plane: bool = True) -> flo
 
 
 def _voxel_entropy_grid(p_xy: np.ndarray, t: np.ndarray, W: np.ndarray, t_ref: float,
-                        voxel_m: float, shift_m: float = 0.0) -> np.ndarray:
+                        voxel_m: float, shift_m: float = 0.0,
+                        bins_per_point: float = 8.0) -> np.ndarray:
     """:func:`voxel_entropy` (plane) of the cloud compensated by every velocity of ``W``
     ``(m, 2)`` at once: one (m, n) sort of packed pixel keys, run lengths per row, entropy
     summed per row by ``bincount`` - the whole grid in one batched pass (no Python loop
-    over the grid)."""
+    over the grid). The pixels are counted by one ``bincount`` when the key space has at
+    most ``bins_per_point`` bins per (velocity, point) entry (a compact cloud: no sort),
+    else by sorting each row."""
     dt = (t_ref - t)[None, :]
     ix = np.floor((p_xy[None, :, 0] + W[:, :1] * dt + shift_m) / voxel_m).astype(np.int64)
     iy = np.floor((p_xy[None, :, 1] + W[:, 1:] * dt + shift_m) / voxel_m).astype(np.int64)
@@ -176,14 +179,23 @@ def _voxel_entropy_grid(p_xy: np.ndarray, t: np.ndarray, W: np.ndarray, t_ref: f
     ny = int(iy.max()) + 1
     nx = int(ix.max()) + 1
     m, n = ix.shape
-    # rows apart in one key space, so the flattened sorted rows stay sorted
-    key = np.sort(ix * ny + iy, axis=1) + np.arange(m, dtype=np.int64)[:, None] * (nx * ny)
-    flat = key.ravel()
-    start = np.concatenate([[0], np.flatnonzero(np.diff(flat)) + 1])
-    cnt = np.diff(np.concatenate([start, [flat.size]])).astype(float)
+    # rows apart in one key space
+    key = ix * ny + iy
+    key += np.arange(m, dtype=np.int64)[:, None] * (nx * ny)
+    if m * nx * ny <= bins_per_point * key.size:
+        # pixel counts by one bincount over the (small) key space, no sort: the nonzero
+        # counts come out in key order, the order of the sorted runs below (same sums)
+        c = np.bincount(key.ravel(), minlength=m * nx * ny)
+        nz = np.flatnonzero(c)
+        cnt, row = c[nz].astype(float), nz // (nx * ny)
+    else:  # a wide cloud: sorted runs per row
+        flat = np.sort(key, axis=1).ravel()
+        start = np.concatenate([[0], np.flatnonzero(np.diff(flat)) + 1])
+        cnt = np.diff(np.concatenate([start, [flat.size]])).astype(float)
+        row = start // n
     pr = cnt / (cnt + 1.0)
     h = -(pr * np.log(pr) + (1 - pr) * np.log1p(-pr))
-    return np.bincount(start // n, weights=h, minlength=m)
+    return np.bincount(row, weights=h, minlength=m)
 
 
 class RenyiCost:
