@@ -224,19 +224,30 @@ def test_lift_fraction_maps_servo_angle():
 
 
 def test_partly_lifted_mirror_leaves_the_scan_plane_at_the_closed_form_angle(design):
-    """Turned by a about its hinge (|hinge_z| = h below the glass centre, glass height H),
-    the glass edge farthest from the hinge is at height -h + (h + H/2) cos a: the glass
-    leaves the scan plane (z = 0) when cos a < h / (h + H/2)."""
+    """A side turns about its lift axis (nodlidar.hinge: |hinge_z| below the scan plane).
+    A top corner of a glass, e behind the axis and h above it, is at height
+    hinge_z + h cos a - e sin a = hinge_z + R cos(a + phi) (R = hypot(e, h),
+    phi = atan2(e, h)) after turning by a: it drops below the scan plane at
+    a = acos(|hinge_z| / R) - phi. The glass leaves the scan plane when its last top
+    corner does; just before, every mirror still reflects beams, just after none."""
+    from nodlidar.hinge import side_lift_axes
+
     ms = design.spec.mirror
-    h, H = abs(ms.hinge_z_m), ms.glass_height_m
-    f_star = math.acos(h / (h + H / 2)) / ms.lift_angle_rad  # 0.57 of the lift for the paper
+    hz = ms.hinge_z_m
+    axes = side_lift_axes(design)
+    f_star = []
+    for m in design.mirrors:
+        ax = axes[m.side]
+        top = m.patch.corners()[2:]
+        e, h = (top - ax.point_) @ ax.outward_, top[:, 2] - hz
+        a = np.max(np.arccos(abs(hz) / np.hypot(e, h)) - np.arctan2(e, h))
+        f_star.append(a / ms.lift_angle_rad)  # 0.57 of the lift for the paper
     sim = SceneSimulator(design, wall_scene(2.0))
-    win = design.mirror_of_step >= 0
-    below = sim.scan(0.0, 0.0, f_star - 0.01, f_star - 0.01, noise=False)
-    above = sim.scan(0.0, 0.0, f_star + 0.01, f_star + 0.01, noise=False)
-    # the glass still crosses the scan plane along its whole length (moved outwards, so
-    # the beams near its ends now miss it)
-    assert np.mean(below.mirror[win] >= 0) > 0.75
+    below = sim.scan(0.0, 0.0, min(f_star) - 0.01, min(f_star) - 0.01, noise=False)
+    above = sim.scan(0.0, 0.0, max(f_star) + 0.01, max(f_star) + 0.01, noise=False)
+    # the glass still crosses the scan plane near its top corner on the axis (turned
+    # outwards, so the beams towards the rest of it now miss it)
+    assert all(np.any(below.mirror == i) for i in range(len(design.mirrors)))
     assert np.all(above.mirror == -1)
 
 

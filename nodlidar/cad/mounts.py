@@ -36,14 +36,16 @@ Parts
 
 Hinge axis (one per side carrier)
 ---------------------------------
-The solver gives every mirror its own hinge line (``origin + hinge_z*up + s*along``),
-but chained mirrors of one side have different ``along`` directions and are turned by one
-motor. The common axis is horizontal at ``z = hinge_z``, parallel to the chord from the
-outer end of the outermost mirror to the inner end of the innermost one, and shifted
-(perpendicular, horizontally) to the most lidar-ward point of the side's mirror faces, so
-every part of the carrier lies on or behind it (away from the lidar). Lifting turns the
-carrier by ``lift_angle`` about this axis with the top swinging away from the lidar, so
-all carrier material ends up below ``hinge_z + hinge_boss_radius``: out of the beams.
+A side's mirrors sit on one carrier turned by one servo horn, so they all turn about one
+line: the side's lift axis of :func:`nodlidar.hinge.side_lift_axes` (the one hinge model
+of the code base, which the simulator and the ROS outputs use too; :class:`HingeAxis` is
+its view in mm). It is horizontal at ``z = hinge_z``, parallel to the chord from the
+outer end of the outermost mirror face to the inner end of the innermost one, through
+the most lidar-ward point of the side's faces. The carrier conforms to the axis: its
+plan polygons (back plate, end stops, skirt) are clipped to the half-plane behind it
+(away from the lidar), so every part of the carrier lies on or behind it. Lifting turns
+the carrier by ``lift_angle`` about this axis with the top swinging away from the lidar,
+so all carrier material ends up below ``hinge_z + hinge_boss_radius``: out of the beams.
 In the deployed state the faces are exactly the solver's patches.
 """
 
@@ -56,6 +58,7 @@ import numpy as np
 
 from ..errors import NodlidarError, ParameterError
 from ..geometry import matrix_from_axis_angle, unit
+from ..hinge import LiftAxis, face_ends, side_lift_axes
 from .params import MountParams
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -123,6 +126,12 @@ class HingeAxis:
     outward: tuple[float, float, float]
     lift_rad: float
 
+    @classmethod
+    def from_lift_axis(cls, axis: LiftAxis) -> HingeAxis:
+        """The CAD's view (mm) of the side's lift axis (:func:`nodlidar.hinge.side_lift_axes`)."""
+        return cls(side=axis.side, point_mm=tuple(map(float, mm_from_m(axis.point_m))),
+                   direction=axis.direction, outward=axis.outward, lift_rad=axis.lift_rad)
+
     def to_dict(self) -> dict[str, Any]:
         return {"side": self.side, "point_mm": list(self.point_mm),
                 "direction": list(self.direction), "outward": list(self.outward),
@@ -145,11 +154,30 @@ class SideLayout:
     stop_ends: tuple[tuple[str, str], ...] = ()  # (mirror name, "outer"/"inner") per stop
 
 
-def _face_ends(patch) -> tuple[np.ndarray, np.ndarray]:
-    """(outer, inner) ends of a patch's face at z = 0 in mm (outer = larger |bearing|)."""
-    ends = mm_from_m(patch.point(np.array([patch.s_min, patch.s_max])))
-    b = np.abs(np.arctan2(ends[:, 1], ends[:, 0]))
-    return (ends[0], ends[1]) if b[0] >= b[1] else (ends[1], ends[0])
+def _clip_behind(poly: np.ndarray, axis: HingeAxis) -> np.ndarray | None:
+    """The part of the plan polygon ``poly (k, 2)`` [mm] on or behind the hinge axis (on
+    its ``outward`` side), or None if nothing is left (Sutherland-Hodgman against one
+    half-plane: exact for any simple polygon, which stays one piece here because the
+    carrier's polygons each cross the axis line at most once)."""
+    a0, w = np.asarray(axis.point_mm)[:2], np.asarray(axis.outward)[:2]
+    e = (poly - a0) @ w
+    if np.all(e >= 0):
+        return poly
+    out = []
+    k = len(poly)
+    for i in range(k):
+        j = (i + 1) % k
+        if e[i] >= 0:
+            out.append(poly[i])
+        if (e[i] >= 0) != (e[j] >= 0):
+            f = e[i] / (e[i] - e[j])
+            out.append(poly[i] + f * (poly[j] - poly[i]))
+    # a vertex on the line is entered once, not again as a crossing
+    q = np.array([p for i, p in enumerate(out) if np.linalg.norm(p - out[i - 1]) > 1e-9])
+    if len(q) < 3:
+        return None
+    area = 0.5 * abs(float(np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1])))
+    return q if area > 1e-9 else None
 
 
 def _check_vertical(design: Design) -> None:
@@ -190,14 +218,13 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
         raise ParameterError("cad.end_stop_depth_mm", params.end_stop_depth_mm,
                              f"< mirror.glass_thickness = {t:g} mm (the stops stay behind the "
                              "mirror's face plane; a flush stop would be a second face in it)")
-    hinge_z = float(mm_from_m(design.spec.mirror.hinge_z_m))
-    lift = float(design.spec.mirror.lift_angle_rad)
+    axes = {sd: HingeAxis.from_lift_axis(ax) for sd, ax in side_lift_axes(design).items()}
     out: dict[str, SideLayout] = {}
     for side in ("L", "R"):
         ms = sorted((m for m in design.mirrors if m.side == side), key=lambda m: m.index)
         if not ms:
             continue
-        ends = [_face_ends(m.patch) for m in ms]
+        ends = [mm_from_m(face_ends(m.patch)) for m in ms]
         normals = [np.asarray(m.patch.normal_, float) for m in ms]
         dirs = [unit(i - o) for o, i in ends]
         chained = all(np.linalg.norm(ends[j][1] - ends[j + 1][0]) < 1e-6
@@ -242,20 +269,19 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
             end, away = (o, -dirs[j]) if which == "outer" else (i, dirs[j])
             stops.append(_stop_polygon(end, away, normals[j], gap, params, t))
             stop_ends.append((ms[j].name, which))
-        # the stops' lidar-ward corners count as carrier fronts for the axis rule
-        fronts += [np.r_[q, 0.0] for sp in stops for q in sp[:2]]
-        # hinge axis: chord direction, through the most lidar-ward face point
-        c = unit(np.r_[(ends[-1][1] - ends[0][0])[:2], 0.0])
-        wdir = np.cross(c, EZ)
-        if wdir @ (-normals[0]) < 0:
-            wdir = -wdir
-        e = [(p - ends[0][0]) @ wdir for p in fronts]
-        a0 = ends[0][0] + min(e) * wdir
-        a0 = np.array([a0[0], a0[1], hinge_z])
-        # top (+z) must go to +outward: z -> z cos + (c x z) sin
-        sign = 1.0 if np.cross(c, EZ) @ wdir > 0 else -1.0
-        axis = HingeAxis(side=side, point_mm=tuple(map(float, a0)), direction=tuple(map(float, c)),
-                         outward=tuple(map(float, wdir)), lift_rad=sign * lift)
+        # the hinge axis is the side's lift axis (nodlidar.hinge, from the faces alone);
+        # the carrier conforms to it: material lidar-ward of it (the end stops' front
+        # corners beyond an end of a mirror that is not parallel to the chord) is cut
+        # away, so that the whole carrier lies behind the axis and stays below it lifted
+        axis = axes[side]
+        a0, c, wdir = (np.asarray(axis.point_mm), np.asarray(axis.direction),
+                       np.asarray(axis.outward))
+        polys = tuple(q for q in (_clip_behind(poly, axis) for poly in polys) if q is not None)
+        kept = [(q, se) for q, se in ((_clip_behind(sp, axis), se)
+                                      for sp, se in zip(stops, stop_ends, strict=True))
+                if q is not None]
+        stops, stop_ends = [q for q, _ in kept], [se for _, se in kept]
+        fronts = [f for f in fronts if (f[:2] - a0[:2]) @ wdir[:2] >= -1e-9]
         pts = np.vstack([*polys, *stops, np.array(fronts)[:, :2]])
         u = (pts - a0[:2]) @ c[:2]
         ax_pts = np.array([a0[:2] + u.min() * c[:2], a0[:2] + u.max() * c[:2]])

@@ -7,8 +7,9 @@ Independent of :class:`~nodlidar.beams.BeamModel` on purpose (the two check each
    scan, which refers to step 0: conventions.md).
 2. In the head frame it is cast with embree against every mirror as finite geometry: a
    two-triangle mesh of each patch of ``design.patches(perturbations)`` (the "as built"
-   ground truth), turned about its hinge by the lift state at the beam's time (the ray is
-   turned back into the unturned patch's frame, so each beam may see its own lift state).
+   ground truth), turned about its side's lift axis (:mod:`nodlidar.hinge`, the one hinge
+   model) by the lift state at the beam's time (the ray is turned back into the unturned
+   patch's frame, so each beam may see its own lift state).
    The nearest mirror hit reflects it (:func:`~nodlidar.geometry.reflect`); up to
    ``max_bounces`` times. A beam meeting a mirror's back is absorbed (no return).
 3. The outgoing ray is taken to the world at the beam's time: the nod pitch about
@@ -31,37 +32,19 @@ The URG measurement model (:func:`measure`) adds Gaussian range noise with
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import MirrorPatch, Perturbation, reflect
+from ..geometry import MirrorPatch, Perturbation, reflect, rotate_about_axis, rotate_about_line
+from ..hinge import LiftAxis, lift_fraction, lifted_patch, side_lift_axes
 from ..lidar import LidarModel
 from .scene import HIT_NONE, HIT_STATIC, Scene, builtin_scene
 
+# lift_fraction (nodlidar.hinge) and rotate_about_axis (nodlidar.geometry) are re-exported
+# under their old home for callers that import them from here
 __all__ = ["ScanTruth", "SceneSimulator", "measure", "lift_fraction", "rotate_about_axis"]
-
-
-def lift_fraction(servo_rad: np.ndarray | float, deployed_rad: float = 0.0,
-                  lifted_rad: float = math.pi / 2) -> np.ndarray:
-    """How far a mirror is lifted (0 deployed .. 1 lifted) at servo angle(s) [rad]."""
-    a = np.asarray(servo_rad, dtype=float)
-    return np.clip((a - deployed_rad) / (lifted_rad - deployed_rad), 0.0, 1.0)
-
-
-def rotate_about_axis(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rodrigues rotation of vectors ``v`` (n, 3) about unit ``axis`` (3,) by per-row
-    ``angle`` (n,) [rad] (right hand)."""
-    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
-    k = np.asarray(axis, dtype=float)
-    # k x v by columns: the products and differences np.cross forms, without its
-    # axis-juggling overhead (the same numbers)
-    k0, k1, k2 = k
-    v0, v1, v2 = v[:, 0], v[:, 1], v[:, 2]
-    kxv = np.stack([k1 * v2 - k2 * v1, k2 * v0 - k0 * v2, k0 * v1 - k1 * v0], -1)
-    return v * c + kxv * s + np.outer(v @ k, k) * (1.0 - c)
 
 
 def measure(true_ranges_m: np.ndarray, model: LidarModel, rng: np.random.Generator | None,
@@ -237,6 +220,10 @@ class SceneSimulator:
         self.patches: list[MirrorPatch] = design.patches(self.perturbations)
         self.mirror_sides = np.array([m.side for m in design.mirrors])
         self.lift_angle_rad = float(design.spec.mirror.lift_angle_rad)
+        # the one hinge model (nodlidar.hinge): each side's mirrors turn about the side's
+        # lift axis, from the nominal faces (the carrier is printed to the nominal design)
+        self.lift_axes: dict[str, LiftAxis] = side_lift_axes(design)
+        self._axis_of = [self.lift_axes[m.side] for m in design.mirrors]
         self.pivot = np.asarray(design.spec.nod.pivot_m, dtype=float)
         self.max_bounces = int(max_bounces)
         th = self.lidar.bearing_from_step(self.lidar.steps)
@@ -260,17 +247,24 @@ class SceneSimulator:
                                                      process=False), cull=True)
                          for p in self.patches]
         self._head_cache: dict[tuple[float, float], tuple] = {}
-        # each mirror's beam window: a sphere centred on its hinge axis through its corners
-        # (1 mm larger), so it holds the patch turned by any lift angle
+        # each mirror's beam window: a sphere centred on its side's lift axis through its
+        # corners (1 mm larger), so it holds the patch turned by any lift angle
         self._windows = []
-        for p in self.patches:
-            pivot, axis = p.origin_ + p.hinge_z * p.up_, p.along_
+        for p, ax in zip(self.patches, self._axis_of, strict=True):
             q = p.corners()
-            c = pivot + ((q.mean(axis=0) - pivot) @ axis) * axis
+            c = ax.nearest_point(q.mean(axis=0))
             r = float(np.max(np.linalg.norm(q - c, axis=1))) + _MeshCaster._MARGIN_M
             self._windows.append((c, r * r))
 
     # -- pieces ------------------------------------------------------------------------
+    def mirror_patches_at(self, lift_left: float = 0.0, lift_right: float = 0.0) -> list[MirrorPatch]:
+        """The glass the beams meet at constant lift fractions (0 deployed, 1 lifted): each
+        of :attr:`patches` turned about its side's lift axis (:func:`~nodlidar.hinge.lifted_patch`),
+        the pose :meth:`head_rays` casts against."""
+        frac = {"L": float(lift_left), "R": float(lift_right)}
+        return [lifted_patch(p, ax, frac[ax.side])
+                for p, ax in zip(self.patches, self._axis_of, strict=True)]
+
     def beam_times(self, t_scan_s: float, steps: np.ndarray | None = None) -> np.ndarray:
         """Time [s] of each step's measurement in the scan stamped ``t_scan_s`` (step 0)."""
         steps = self.lidar.steps if steps is None else np.asarray(steps)
@@ -308,23 +302,23 @@ class SceneSimulator:
             best_m = np.full(n, -1)
             best_nrm = np.zeros((n, 3))
             for i, p in enumerate(self.patches):
-                # the mirror's beam window: only rays that meet its sphere about the hinge
-                # (which holds the patch at every lift angle, and which turning a ray about
-                # the hinge does not change) are turned and cast
+                # the mirror's beam window: only rays that meet its sphere about the lift
+                # axis (which holds the patch at every lift angle, and which turning a ray
+                # about the axis does not change) are turned and cast
                 centre, r2 = self._windows[i]
                 idx = np.flatnonzero(alive & (last != i) & _meets_sphere(o, d, centre, r2))
                 if not len(idx):
                     continue
                 oi, di = o[idx], d[idx]
-                # the lift motor turns the side's mirrors by -sign(hinge_z) * lift_angle * f
-                # (conventions.md); intersect the unturned patch with the ray turned back
-                ang = -np.sign(p.hinge_z) * self.lift_angle_rad * frac[self.mirror_sides[i]][idx]
+                # the lift turns the side about its lift axis by f * lift_rad
+                # (nodlidar.hinge, conventions.md); intersect the unturned patch with the
+                # ray turned back
+                ax = self._axis_of[i]
+                ang = ax.angle(frac[ax.side][idx])
                 if np.any(ang != 0):
-                    pivot = p.origin_ + p.hinge_z * p.up_
-                    ol = pivot + rotate_about_axis(oi - pivot, p.along_, -ang)
-                    dl = rotate_about_axis(di, p.along_, -ang)
-                    nrm = rotate_about_axis(np.broadcast_to(p.normal_, (len(idx), 3)),
-                                            p.along_, ang)
+                    ol = rotate_about_line(oi, ax.point_, ax.direction_, -ang)
+                    dl = rotate_about_axis(di, ax.direction_, -ang)
+                    nrm = rotate_about_axis(p.normal_, ax.direction_, ang)
                 else:
                     ol, dl, nrm = oi, di, np.broadcast_to(p.normal_, (len(idx), 3))
                 t, _ = self._mirrors[i].cast(ol, dl)
