@@ -1,14 +1,15 @@
 """BeamModel: (step, range[, nod angle]) -> 3D point, for direct and reflected beams.
 
-The runtime's projection, built from a solved :class:`~nodlidar.solver.Design` (plus a
-calibration's perturbations). Per valid step it precomputes, once, the exact path: the
+The runtime's projection, built from a solved :class:`~nodlidar.design.Design` (plus a
+calibration's perturbations; ``Design.beam_model``). Per valid step it precomputes, once, the exact path: the
 hit point on its mirror and the reflected direction (:func:`~nodlidar.geometry.reflect_rays`
 on the perturbed patch), so projecting a scan is a gather and a multiply-add, vectorised
 over beams.
 
 A measured range ``r`` of a reflected beam is the total path length: ``t_m`` to the mirror
 then ``r - t_m`` along the reflected direction. Points are in the head frame (nod = 0) or,
-given per-beam nod angles, in the sensor base frame: ``p = R_y(nod) (p_head - pivot) + pivot``.
+given per-beam nod angles, in the sensor base frame: ``p = R_y(nod) (p_head - pivot) + pivot``
+(:func:`~nodlidar.geometry.pitch_about_pivot`).
 Which beams a mirror takes comes from the design (the runtime cannot see misses); whether a
 perturbed mirror still catches them is for :func:`nodlidar.verify.verify` to check.
 """
@@ -16,17 +17,29 @@ perturbed mirror still catches them is for :func:`nodlidar.verify.verify` to che
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
-from .geometry import DIRECT, MirrorPatch, Perturbation, reflect_rays
+from .geometry import (
+    DIRECT,
+    MirrorPatch,
+    Perturbation,
+    directions_from_bearings,
+    pitch_about_pivot,
+    reflect_rays,
+)
 from .lidar import LidarModel
 
-if TYPE_CHECKING:
-    from .solver import Design
-
 __all__ = ["BeamModel", "DIRECT"]   # DIRECT: geometry.DIRECT, re-exported
+
+
+class _SolvedDesign(Protocol):
+    """What :meth:`BeamModel.from_design` needs of a design (``nodlidar.design.Design``,
+    which sits above this module: it builds its BeamModel with :meth:`BeamModel.build`)."""
+
+    def beam_model(self, perturbations: dict[str, Perturbation] | None = None,
+                   mirrors_deployed: bool = True) -> BeamModel: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -38,7 +51,7 @@ class BeamModel:
     lidar : LidarModel
     mirror_names : tuple of str
     mirror_of_step : (n_steps,) int
-        Mirror index per valid step (``-1`` = direct).
+        Mirror index per valid step (``DIRECT`` = -1: direct).
     dir0 : (n_steps, 3) float
         Direction of each beam leaving the lidar.
     t_mirror : (n_steps,) float
@@ -63,9 +76,9 @@ class BeamModel:
     @classmethod
     def build(cls, lidar: LidarModel, patches: list[MirrorPatch], mirror_of_step: np.ndarray,
               pivot=(0.0, 0.0, 0.0)) -> BeamModel:
-        """Precompute paths; ``mirror_of_step`` may be all ``-1`` (mirrors lifted)."""
+        """Precompute paths; ``mirror_of_step`` may be all ``DIRECT`` (mirrors lifted)."""
         th = lidar.bearing_from_step(lidar.steps)
-        dir0 = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
+        dir0 = directions_from_bearings(th)
         t_m = np.zeros(len(th))
         hit = np.zeros_like(dir0)
         dir1 = dir0.copy()
@@ -80,12 +93,12 @@ class BeamModel:
                    t_mirror=t_m, hit=hit, dir1=dir1, pivot=np.asarray(pivot, dtype=float))
 
     @classmethod
-    def from_design(cls, design: Design, perturbations: dict[str, Perturbation] | None = None,
+    def from_design(cls, design: _SolvedDesign,
+                    perturbations: dict[str, Perturbation] | None = None,
                     *, mirrors_deployed: bool = True) -> BeamModel:
-        """The BeamModel of a solved design (mirrors perturbed and/or lifted)."""
-        patches = design.patches(perturbations)
-        mos = design.mirror_of_step if mirrors_deployed else np.full(design.lidar.n_steps, DIRECT)
-        return cls.build(design.lidar, patches, mos, design.spec.nod.pivot_m)
+        """The BeamModel of a solved design (mirrors perturbed and/or lifted): the same as
+        ``design.beam_model(...)``, kept for older callers."""
+        return design.beam_model(perturbations, mirrors_deployed=mirrors_deployed)
 
     # ------------------------------------------------------------------------------
     def _index(self, steps: np.ndarray) -> np.ndarray:
@@ -94,7 +107,7 @@ class BeamModel:
         return steps.astype(int) - self.lidar.step_min
 
     def mirror_index(self, steps: np.ndarray) -> np.ndarray:
-        """Mirror index (``-1`` direct) of each step. Same shape as ``steps``."""
+        """Mirror index (``DIRECT`` = -1: direct) of each step. Same shape as ``steps``."""
         return self.mirror_of_step[self._index(steps)]
 
     def points(self, steps: np.ndarray, ranges_m: np.ndarray,
@@ -126,12 +139,7 @@ class BeamModel:
         if nod_rad is None:
             return p
         nod = np.broadcast_to(np.asarray(nod_rad, dtype=float), r.shape)
-        c, s = np.cos(nod), np.sin(nod)
-        q = p - self.pivot
-        # R_y(nod) applied per point (vectorised; see geometry.rot_y)
-        x = c * q[:, 0] + s * q[:, 2]
-        z = -s * q[:, 0] + c * q[:, 2]
-        return np.stack([x, q[:, 1], z], -1) + self.pivot
+        return pitch_about_pivot(p, nod, self.pivot)
 
     def rays(self, steps: np.ndarray, nod_rad: np.ndarray | float | None = None):
         """Outgoing rays of ``steps``: ``(start (n,3), direction (n,3), path offset (n,))``.
@@ -144,10 +152,4 @@ class BeamModel:
         if nod_rad is None:
             return start, d, off
         nod = np.broadcast_to(np.asarray(nod_rad, dtype=float), off.shape)
-        c, s = np.cos(nod), np.sin(nod)
-
-        def ry(v, shift):
-            q = v - shift
-            return np.stack([c * q[:, 0] + s * q[:, 2], q[:, 1], -s * q[:, 0] + c * q[:, 2]], -1) + shift
-
-        return ry(start, self.pivot), ry(d, 0.0), off
+        return pitch_about_pivot(start, nod, self.pivot), pitch_about_pivot(d, nod), off

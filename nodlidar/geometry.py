@@ -26,6 +26,7 @@ from .errors import ParameterError, require
 
 __all__ = [
     "DIRECT",
+    "CLEAR",
     "HOUSING",
     "BLOCKED",
     "Tol",
@@ -56,6 +57,9 @@ __all__ = [
 
 #: Mirror index of a beam that meets no mirror (goes straight out of the lidar).
 DIRECT = -1
+#: Blocker code of a beam whose path is clear (verify.trace_beams). Same value as
+#: ``DIRECT``, a different question: which obstacle, not which mirror.
+CLEAR = -1
 #: Blocker code of a beam stopped by the lidar's own housing (a reflection turned back).
 HOUSING = -2
 #: Blocker code of a beam stopped by anything else before its target (another mirror's

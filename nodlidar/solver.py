@@ -26,34 +26,28 @@ Conventions chosen where the paper is silent (docs/paper-reproduction.md):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from functools import cached_property
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
+from .design import Design, MirrorSolution  # the solved-design types (re-exported here)
 from .errors import InfeasibleDesignError, ParameterError
 from .geometry import (
+    EZ,
     MirrorPatch,
-    Perturbation,
     arc_point,
     bearing_of,
+    directions_from_bearings,
     reflect_rays,
     unit,
     wrap_angle,
 )
 from .lidar import LidarModel
 from .spec import DesignSpec
+from .verify import verify
 
 __all__ = ["MirrorSolution", "Design", "solve", "window_steps", "front_window", "EZ"]
-
-EZ = np.array([0.0, 0.0, 1.0])
-
-
-def _u(theta: np.ndarray | float) -> np.ndarray:
-    """Unit horizontal direction(s) at bearing ``theta``: ``(...,) -> (..., 3)``."""
-    th = np.asarray(theta, dtype=float)
-    return np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
 
 
 def window_steps(lidar: LidarModel, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -62,184 +56,6 @@ def window_steps(lidar: LidarModel, k: int) -> tuple[np.ndarray, np.ndarray, np.
     n_side = n_w * (k - 1) // 2
     s = lidar.steps
     return s[:n_side], s[n_side: lidar.n_steps - n_side], s[lidar.n_steps - n_side:]
-
-
-@dataclass(frozen=True, eq=False)
-class MirrorSolution:
-    """One solved mirror.
-
-    Attributes
-    ----------
-    name : str
-        ``"L1"``, ``"R2"``...; 1 is the outermost mirror of its side.
-    side : str
-        ``"L"`` (y > 0) or ``"R"``.
-    index : int
-        1-based position on its side, counted from the outside.
-    steps : (n,) int
-        The beams this mirror takes, ascending.
-    target_bearing : (n,) float
-        Where each of them should land on the arc of radius D [rad].
-    offset_index : int
-        q: the beams sit ``q * res / k`` anticlockwise of a direct beam.
-    patch : MirrorPatch
-        The mirror as finite geometry (unperturbed, deployed).
-    """
-
-    name: str
-    side: str
-    index: int
-    steps: np.ndarray
-    target_bearing: np.ndarray
-    offset_index: int
-    patch: MirrorPatch
-    lidar: LidarModel = field(repr=False)
-    anchor: int = -1
-    target_step: int = 0
-
-    @property
-    def sign(self) -> int:
-        """+1 for the left side, -1 for the right (mirror symmetry of every formula)."""
-        return 1 if self.side == "L" else -1
-
-    @property
-    def anchor_step(self) -> int:
-        """The beam constructed to land exactly on its target (the paper's OZ).
-
-        The outermost beam unless the design file names another; it may lie outside
-        :attr:`steps` (a construction ray only, e.g. the mirrored step 43 of the paper's R1).
-        """
-        if self.anchor >= 0:
-            return int(self.anchor)
-        return int(self.steps[-1] if self.side == "L" else self.steps[0])
-
-    @cached_property
-    def _anchor_ray(self) -> tuple[float, np.ndarray, np.ndarray]:
-        """Range to the (infinite) mirror plane, incident and reflected direction of the anchor beam."""
-        u = _u(self.lidar.bearing_from_step(self.anchor_step))
-        t, hit, out = reflect_rays(np.zeros((1, 3)), u[None], self.patch.origin_, self.patch.normal_)
-        return float(t[0]), u, out[0]
-
-    @property
-    def first_step(self) -> int:
-        return int(self.steps[0])
-
-    @property
-    def last_step(self) -> int:
-        return int(self.steps[-1])
-
-    @cached_property
-    def _hits(self) -> tuple[np.ndarray, np.ndarray]:
-        th = self.lidar.bearing_from_step(self.steps)
-        t, hit, out = reflect_rays(np.zeros((len(th), 3)), _u(th), self.patch.origin_,
-                                   self.patch.normal_)
-        return t, out
-
-    @property
-    def hit_ranges_m(self) -> np.ndarray:
-        """Distance from O to the mirror along each of its beams [m], ``(n,)``."""
-        return self._hits[0]
-
-    @property
-    def oz_m(self) -> float:
-        """Range to the mirror along the anchor beam, the paper's OZ [m]."""
-        return self._anchor_ray[0]
-
-    @property
-    def incidence_rad(self) -> np.ndarray:
-        """Angle of incidence of each beam on the mirror [rad], ``(n,)`` (paper's gamma)."""
-        th = self.lidar.bearing_from_step(self.steps)
-        return np.arccos(np.clip(np.abs(_u(th) @ self.patch.normal_), 0, 1))
-
-    @property
-    def phi_rad(self) -> float:
-        """Angle between the anchor beam and the mirror, the paper's phi [rad]."""
-        _, u, _ = self._anchor_ray
-        return float(np.pi / 2 - np.arccos(np.clip(abs(u @ self.patch.normal_), 0, 1)))
-
-    @property
-    def oa_m(self) -> float:
-        """Perpendicular distance from O to the anchor beam's reflected ray, the paper's OA [m]."""
-        t, u, d = self._anchor_ray
-        return float(np.linalg.norm(np.cross(-u * t, d)))
-
-    @property
-    def standoff_m(self) -> float:
-        """Perpendicular distance from O to the mirror plane, the paper's d [m]."""
-        return self.patch.standoff
-
-    @property
-    def beam_span_m(self) -> float:
-        """Distance between the first and last beams' hit points, the paper's QZ [m]."""
-        th = self.lidar.bearing_from_step(self.steps[[0, -1]])
-        p = _u(th) * self.hit_ranges_m[[0, -1]][:, None]
-        return float(np.linalg.norm(p[1] - p[0]))
-
-    @property
-    def length_m(self) -> float:
-        """Length of the mirror patch, including the beam margins [m]."""
-        return self.patch.length
-
-
-@dataclass(frozen=True, eq=False)
-class Design:
-    """A solved design: the spec, the lidar, every mirror and the beam-to-mirror map."""
-
-    spec: DesignSpec
-    lidar: LidarModel
-    mirrors: tuple[MirrorSolution, ...]
-    direct_steps: np.ndarray
-
-    @property
-    def design_distance_m(self) -> float:
-        return self.spec.layout.design_distance_m
-
-    def mirror(self, name: str) -> MirrorSolution:
-        for m in self.mirrors:
-            if m.name == name:
-                return m
-        raise KeyError(f"no mirror {name!r}; have {', '.join(m.name for m in self.mirrors)}")
-
-    @cached_property
-    def mirror_of_step(self) -> np.ndarray:
-        """Index into :attr:`mirrors` of each valid step, -1 for direct beams. ``(n_steps,)``."""
-        out = np.full(self.lidar.n_steps, -1, dtype=int)
-        for i, m in enumerate(self.mirrors):
-            out[m.steps - self.lidar.step_min] = i
-        return out
-
-    @cached_property
-    def target_bearing(self) -> np.ndarray:
-        """Target bearing at D of every valid step (direct: its own bearing). ``(n_steps,)``."""
-        out = self.lidar.bearing_from_step(self.lidar.steps)
-        for m in self.mirrors:
-            out[m.steps - self.lidar.step_min] = m.target_bearing
-        return out
-
-    @cached_property
-    def shadowed_steps(self) -> np.ndarray:
-        """Valid steps the design gives up (``placement.shadowed_steps``) that the exact trace
-        finds blocked: their reflection meets another mirror, so a one-reflection model
-        (the runtime's BeamModel) must not project them. ``(k,) int``, ascending."""
-        if not self.spec.placement.shadowed_steps:
-            return np.zeros(0, dtype=int)
-        from .verify import verify
-
-        v = verify(self)
-        return v.steps[v.bad & ~v.unexpected_blocked()]
-
-    def patches(self, perturbations: dict[str, Perturbation] | None = None) -> list[MirrorPatch]:
-        """Mirror patches, optionally perturbed (mirror name -> Perturbation)."""
-        perturbations = perturbations or {}
-        return [m.patch.perturbed(perturbations[m.name]) if m.name in perturbations else m.patch
-                for m in self.mirrors]
-
-    def beam_model(self, perturbations: dict[str, Perturbation] | None = None,
-                   mirrors_deployed: bool = True):
-        """The runtime :class:`~nodlidar.beams.BeamModel` of this design."""
-        from .beams import BeamModel
-
-        return BeamModel.from_design(self, perturbations, mirrors_deployed=mirrors_deployed)
 
 
 # ---------------------------------------------------------------------------------------
@@ -442,7 +258,7 @@ def _patch_from_line(name: str, z: np.ndarray, normal: np.ndarray, side: str,
     th_lo = lidar.bearing_from_step(steps[0]) - mg * res
     th_hi = lidar.bearing_from_step(steps[-1]) + mg * res
     along = unit(np.cross(EZ, normal))
-    t, hit, _ = reflect_rays(np.zeros((2, 3)), _u(np.array([th_lo, th_hi])), z, normal)
+    t, hit, _ = reflect_rays(np.zeros((2, 3)), directions_from_bearings(np.array([th_lo, th_hi])), z, normal)
     if not np.all(np.isfinite(t)):
         raise InfeasibleDesignError(
             f"mirror {name}: its edge beams run parallel to or away from the mirror plane "
@@ -463,7 +279,7 @@ def _inner_end(patch: MirrorPatch, side: str) -> np.ndarray:
 
 def _chained_anchor(name: str, joint: np.ndarray, theta_z: float, m_pt: np.ndarray) -> np.ndarray:
     """Anchor point on the ray at ``theta_z`` so that the mirror through it passes ``joint``."""
-    u = _u(theta_z)
+    u = directions_from_bearings(theta_z)
 
     def f(oz: float) -> float:
         z = oz * u
@@ -486,13 +302,14 @@ def _errors_for_line(normal: np.ndarray, d: float, thetas: np.ndarray, targets: 
                      D: float) -> np.ndarray:
     """Bearing errors at D [rad] of beams ``thetas`` reflected by the plane n.p = d."""
     point = normal * d
-    t, hit, out = reflect_rays(np.zeros((len(thetas), 3)), _u(thetas), point, normal)
+    t, hit, out = reflect_rays(np.zeros((len(thetas), 3)), directions_from_bearings(thetas), point, normal)
     return wrap_angle(bearing_of(arc_point(hit, out, D)) - targets)
 
 
 def _ray_clearance(normal: np.ndarray, d: float, thetas: np.ndarray) -> np.ndarray:
     """Closest approach to the lidar axis [m] of each beam's reflected ray (plane n.p = d)."""
-    t, hit, out = reflect_rays(np.zeros((len(thetas), 3)), _u(thetas), normal * d, normal)
+    t, hit, out = reflect_rays(np.zeros((len(thetas), 3)), directions_from_bearings(thetas),
+                               normal * d, normal)
     ahead = np.sum(-hit * out, -1) > 0
     perp = np.linalg.norm(np.cross(hit, out)[:, 2:], axis=-1)
     return np.where(ahead, perp, np.linalg.norm(hit[:, :2], axis=-1))
@@ -513,7 +330,7 @@ def _optimise_free(name, z0, n0, thetas, targets, D, r_clear, r_head):
 
     def unpack(y):
         x = x0 + y * scale
-        return _u(x[0]), -x[1]
+        return directions_from_bearings(x[0]), -x[1]
 
     def cost(y):
         n, d = unpack(y)
@@ -536,12 +353,12 @@ def _optimise_chained(name, joint, thetas, targets, D, n0):
     a0 = np.arctan2(n0[1], n0[0])
 
     def rms(a):
-        n = _u(a)
+        n = directions_from_bearings(a)
         return float(np.sqrt(np.mean(_errors_for_line(n, joint @ n, thetas, targets, D) ** 2)))
 
     sol = minimize_scalar(rms, bounds=(a0 - 0.2, a0 + 0.2), method="bounded",
                           options={"xatol": 1e-12})
-    return _u(sol.x)
+    return directions_from_bearings(sol.x)
 
 
 def solve(spec: DesignSpec, *, check: bool = True) -> Design:
@@ -571,10 +388,10 @@ def solve(spec: DesignSpec, *, check: bool = True) -> Design:
             raise ParameterError(f"placement.mirrors[{name}]", [int(steps[0]), int(steps[-1])],
                                  f"steps on the {'left (above' if side == 'L' else 'right (below'}"
                                  f" step {lidar.step_front})")
-        m_pt = D * _u(theta_m)
+        m_pt = D * directions_from_bearings(theta_m)
         if not plan.chain:
             assert plan.standoff_m is not None  # an unchained plan always has its OA
-            z = _anchor_oz(theta_z, theta_m, plan.standoff_m, D, name) * _u(theta_z)
+            z = _anchor_oz(theta_z, theta_m, plan.standoff_m, D, name) * directions_from_bearings(theta_z)
         else:
             if side not in prev:
                 raise ParameterError(f"placement.mirrors[{name}].chain", True,
@@ -590,7 +407,7 @@ def solve(spec: DesignSpec, *, check: bool = True) -> Design:
                 normal = _optimise_chained(name, joint, thetas, target, D, normal)
                 point = joint
             # re-anchor on the anchor beam so 'origin' keeps its meaning
-            t, hit, _ = reflect_rays(np.zeros((1, 3)), _u(theta_z)[None], point, normal)
+            t, hit, _ = reflect_rays(np.zeros((1, 3)), directions_from_bearings(theta_z)[None], point, normal)
             z = hit[0]
             if normal @ (-z) < 0:
                 normal = -normal
@@ -613,11 +430,14 @@ def solve(spec: DesignSpec, *, check: bool = True) -> Design:
     # order: L1, L2, ..., R1, R2, ...
     mirrors.sort(key=lambda m: (m.side != "L", m.index))
     design = Design(spec=spec, lidar=lidar, mirrors=tuple(mirrors), direct_steps=front)
-    from .verify import verify
-
-    if not check:
+    if not check and not spec.placement.shadowed_steps:
         return design
     report = verify(design)
+    if spec.placement.shadowed_steps:
+        # the given-up steps the trace finds blocked: the runtime must not project them
+        design = replace(design, shadowed_steps=report.steps[report.bad & ~report.unexpected_blocked()])
+    if not check:
+        return design
     bad = report.unexpected_blocked()
     if bad.any():
         raise InfeasibleDesignError(

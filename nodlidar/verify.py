@@ -10,18 +10,25 @@ D and compared with the target the solver assigned.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .geometry import MirrorPatch, arc_point, bearing_of, ray_cylinder_hit, reflect, wrap_angle
-
-if TYPE_CHECKING:
-    from .solver import Design
+from .design import Design
+from .geometry import (
+    CLEAR,
+    DIRECT,
+    HOUSING,
+    TOL,
+    MirrorPatch,
+    arc_point,
+    bearing_of,
+    directions_from_bearings,
+    ray_cylinder_hit,
+    reflect,
+    wrap_angle,
+)
 
 __all__ = ["Verification", "verify", "trace_beams"]
-
-HOUSING = -2  # blocker code for the lidar housing
 
 
 def trace_beams(patches: list[MirrorPatch], dirs: np.ndarray, max_range: float,
@@ -41,23 +48,23 @@ def trace_beams(patches: list[MirrorPatch], dirs: np.ndarray, max_range: float,
     Returns
     -------
     hit : (n,) int
-        Index of the first mirror hit, -1 for none.
+        Index of the first mirror hit, ``DIRECT`` (-1) for none.
     t : (n,) float
         Distance to that mirror (inf for none).
     out : (n, 3) float
         Direction after the mirror (the beam's own direction if none).
     blocker : (n,) int
-        -1 if the path is clear, the index of a mirror hit by the reflected ray, or -2 if
-        the reflected ray enters the housing.
+        ``CLEAR`` (geometry.CLEAR, -1) if the path is clear, the index of a mirror hit by the reflected
+        ray, or ``HOUSING`` (geometry.HOUSING, -2) if the reflected ray enters the housing.
     """
     n = len(dirs)
     origins = np.zeros((n, 3))
     T = np.stack([p.intersect(origins, dirs)[0] for p in patches]) if patches else np.full((1, n), np.inf)
     hit = np.argmin(T, axis=0)
     t = T[hit, np.arange(n)]
-    hit = np.where(np.isfinite(t), hit, -1)
+    hit = np.where(np.isfinite(t), hit, DIRECT)
     out = dirs.copy()
-    blocker = np.full(n, -1)
+    blocker = np.full(n, CLEAR)
     for i, p in enumerate(patches):
         sel = np.nonzero(hit == i)[0]
         if not len(sel):
@@ -70,9 +77,9 @@ def trace_beams(patches: list[MirrorPatch], dirs: np.ndarray, max_range: float,
             if j == i:
                 continue
             tq = q.intersect(o, d)[0]
-            blocked = (tq > 1e-9) & (tq < left) & (blocker[sel] == -1)
+            blocked = (tq > TOL.block_ahead_m) & (tq < left) & (blocker[sel] == CLEAR)
             blocker[sel[blocked]] = j
-        in_housing = ray_cylinder_hit(o, d, housing_radius, left) & (blocker[sel] == -1)
+        in_housing = ray_cylinder_hit(o, d, housing_radius, left) & (blocker[sel] == CLEAR)
         blocker[sel[in_housing]] = HOUSING
     return hit, t, out, blocker
 
@@ -96,12 +103,12 @@ class Verification:
     @property
     def n_blocked(self) -> int:
         """Beams that hit the wrong mirror (or none) or whose reflected path is blocked."""
-        return int(np.count_nonzero(self.wrong_mirror | (self.blocker != -1)))
+        return int(np.count_nonzero(self.bad))
 
     def blocked_by_mirror(self) -> dict[str, int]:
         """Blocked-beam count per mirror (and ``"direct"``)."""
-        bad = self.wrong_mirror | (self.blocker != -1)
-        out = {"direct": int(np.count_nonzero(bad & (self.expected == -1)))}
+        bad = self.bad
+        out = {"direct": int(np.count_nonzero(bad & (self.expected == DIRECT)))}
         for i, m in enumerate(self.design.mirrors):
             out[m.name] = int(np.count_nonzero(bad & (self.expected == i)))
         return out
@@ -109,7 +116,7 @@ class Verification:
     @property
     def bad(self) -> np.ndarray:
         """Beams that hit the wrong mirror (or none) or whose path is blocked, ``(n_steps,) bool``."""
-        return self.wrong_mirror | (self.blocker != -1)
+        return self.wrong_mirror | (self.blocker != CLEAR)
 
     def unexpected_blocked(self) -> np.ndarray:
         """:attr:`bad` outside the design's ``placement.shadowed_steps``, ``(n_steps,) bool``."""
@@ -231,8 +238,7 @@ def verify(design: Design, perturbations=None) -> Verification:
     """Trace every valid beam of ``design`` (optionally with perturbed mirrors)."""
     lidar = design.lidar
     steps = lidar.steps
-    th = lidar.bearing_from_step(steps)
-    dirs = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
+    dirs = directions_from_bearings(lidar.bearing_from_step(steps))
     patches = design.patches(perturbations)
     hit, t, out, blocker = trace_beams(patches, dirs, lidar.range_max_m, lidar.housing_radius_m)
     origin = np.where(np.isfinite(t), t, 0.0)[:, None] * dirs

@@ -20,15 +20,23 @@ Compute only: no plotting here (see :mod:`nodlidar.analysis.plots`). SI units in
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..closed_form import eq1_bearing_on_arc
-from ..geometry import Perturbation, arc_point, bearing_of, reflect_rays, wrap_angle
-
-if TYPE_CHECKING:
-    from ..solver import Design
+from ..design import Design
+from ..errors import ParameterError
+from ..geometry import (
+    DIRECT,
+    Perturbation,
+    arc_point,
+    bearing_of,
+    directions_from_bearings,
+    incidence_angle,
+    reflect_rays,
+    wrap_angle,
+)
 
 __all__ = [
     "DEFAULT_RANGES_M",
@@ -45,14 +53,7 @@ __all__ = [
 DEFAULT_RANGES_M = np.array([0.4, 0.6, 0.8, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0])
 
 
-def _dirs(theta: np.ndarray) -> np.ndarray:
-    """Unit horizontal beam directions ``(n,) -> (n, 3)``."""
-    return np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], -1)
-
-
 def _check_ranges(ranges_m) -> np.ndarray:
-    from ..errors import ParameterError
-
     r = np.atleast_1d(np.asarray(ranges_m, dtype=float))
     if r.ndim != 1 or r.size == 0 or not np.all(np.isfinite(r)) or np.any(r <= 0):
         raise ParameterError("ranges_m", [float(x) for x in np.ravel(r)],
@@ -217,9 +218,10 @@ def bearing_drift(design: Design, ranges_m=None,
     out = []
     for m, patch in zip(design.mirrors, patches, strict=True):
         th = lid.bearing_from_step(m.steps)
-        t, hit, rdir = reflect_rays(np.zeros((len(th), 3)), _dirs(th), patch.origin_, patch.normal_)
+        u = directions_from_bearings(th)
+        t, hit, rdir = reflect_rays(np.zeros((len(th), 3)), u, patch.origin_, patch.normal_)
         trace = np.stack([bearing_of(arc_point(hit, rdir, r)) for r in ranges])
-        incidence = np.arccos(np.clip(np.abs(_dirs(th) @ patch.normal_), 0.0, 1.0))
+        incidence = incidence_angle(u, patch.normal_)
         with np.errstate(invalid="ignore"):  # arcs inside the mirror: NaN, masked below
             closed = eq1_bearing_on_arc(th[None, :], incidence[None, :], t[None, :],
                                         ranges[:, None], m.sign)
@@ -248,7 +250,7 @@ class InterleaveResult:
     steps : (n,) int
         Every valid step that ends up in the front window (direct and reflected).
     mirror_index : (n,) int
-        Index into ``mirror_names`` of each beam's mirror, -1 for direct beams.
+        Index into ``mirror_names`` of each beam's mirror, ``DIRECT`` (-1) for direct beams.
     mirror_names : tuple of str
     points : (r, n, 3) float
         Where each beam crosses the arc (cylinder) of radius ``ranges_m[i]`` [m].
@@ -351,7 +353,7 @@ def beam_density(result: InterleaveResult, bin_width_rad: float = np.radians(4.0
     edges = np.linspace(lo, hi, n_bins + 1)
     width = np.diff(edges)
     dens = np.stack([np.histogram(b, edges)[0] / width for b in result.bearing])
-    direct = result.mirror_index == -1
+    direct = result.mirror_index == DIRECT
     # without mirrors only the direct beams reach the front window (bearing = their own)
     no_mirrors = np.histogram(result.bearing[0, direct], edges)[0] / width
     gaps = result.gaps()

@@ -56,11 +56,12 @@ import signal
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from .._light import MAX_SAMPLES  # defined without numpy: the CLI parser shows it
+from ..design import Design
 from ..errors import ParameterError, require
 from ..geometry import (
     MirrorPatch,
@@ -77,11 +78,8 @@ from ..geometry import (
     rot_z,
     wrap_angle,
 )
+from ..spec import DesignSpec
 from ..validation import check_keys
-
-if TYPE_CHECKING:
-    from ..solver import Design
-    from ..spec import DesignSpec
 
 __all__ = [
     "DISTRIBUTIONS",
