@@ -133,7 +133,8 @@ def test_mirror_lift_states_per_side():
     model = AssemblyModel.from_design(DESIGN)
     left_ids = [i for i, m in enumerate(DESIGN.mirrors) if m.side == "L"]
     batch, truths = simulate(sim, 3, lift_left=1.0)
-    lifted = (np.array([0.0, 5.0]), np.full(2, math.pi / 2))
+    up = model.lift_left.lifted_rad  # the design's lifted servo angle of the left side
+    lifted = (np.array([0.0, 5.0]), np.full(2, up))
     pc = assemble(model, batch, nod_samples(), mirror_left=lifted)
     truth = np.concatenate([t.point_world for t in truths])
     hit = np.isfinite(truth[:, 0])
@@ -145,16 +146,16 @@ def test_mirror_lift_states_per_side():
 
     # the left servo moves from deployed to lifted between t1 and t2 (inside scan 1)
     t1, t2 = 0.22, 0.25
-    moving = (np.array([0.0, t1, t2, 5.0]), np.array([0.0, 0.0, math.pi / 2, math.pi / 2]))
+    moving = (np.array([0.0, t1, t2, 5.0]), np.array([0.0, 0.0, up, up]))
     batch, _ = simulate(sim, 3)
     pc = assemble(model, batch, nod_samples(), mirror_left=moving)
     # independently: beams of left mirrors whose interpolated servo angle is more than the
     # tolerance (3 ticks) away from both ends
     tb = LIDAR.beam_time_s(batch.scan_time_s[batch.scan], batch.steps)
-    ang = np.clip((tb - t1) / (t2 - t1), 0, 1) * math.pi / 2
+    ang = np.clip((tb - t1) / (t2 - t1), 0, 1) * up
     tol = 3 * 2 * math.pi / 4096
     on_left = np.isin(DESIGN.mirror_of_step[batch.steps - LIDAR.step_min], left_ids)
-    between = on_left & (ang > tol) & (ang < math.pi / 2 - tol) & np.isfinite(batch.ranges_m)
+    between = on_left & (np.abs(ang) > tol) & (np.abs(ang - up) > tol) & np.isfinite(batch.ranges_m)
     assert pc.meta["mirror_moving"] == between.sum() > 10
     assert np.isin(pc.mirror[pc.t < t1], left_ids).any()
     assert not np.isin(pc.mirror[pc.t > t2], left_ids).any()
@@ -194,7 +195,7 @@ def test_robot_frame_is_robot_from_sensor_applied():
 
 
 def test_mirror_state_thresholds():
-    p = MirrorLiftProfile()
+    p = MirrorLiftProfile(0.0, math.pi / 2)
     tol = 3 * 2 * math.pi / 4096
     got = mirror_state(np.array([0.0, 0.9 * tol, 1.1 * tol, 1.0, math.pi / 2 - 0.9 * tol, np.nan]), p)
     assert_array_equal(got, [0, 0, 2, 2, 1, 2])

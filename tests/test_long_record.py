@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from nodlidar.errors import DeviceError
-from nodlidar.runtime.actuators import MirrorLiftProfile, SampleBuffer, interpolate_angle
+from nodlidar.runtime.actuators import SampleBuffer, interpolate_angle
 from nodlidar.runtime.assembly import AssemblyModel, ScanBatch, assemble
 from nodlidar.runtime.session import LiveAssembler, Session
 
@@ -99,7 +99,8 @@ def test_live_assembler_equals_whole_capture_assembly():
         if name == "nod":
             a = 0.3 * np.sin(ts)
         else:
-            a = np.where((ts > 10) & (ts < 20), np.pi / 2, 0.0)
+            prof = model.lift_left if name == "mirror_left" else model.lift_right
+            a = np.where((ts > 10) & (ts < 20), prof.lifted_rad, 0.0)
         joints[name] = (ts, a)
     whole = assemble(model, ScanBatch.from_scans(scans), joints["nod"],
                      mirror_left=joints["mirror_left"], mirror_right=joints["mirror_right"])
@@ -109,8 +110,8 @@ def test_live_assembler_equals_whole_capture_assembly():
     # stream: samples arrive as time passes, each scan once it is complete
     smp = {k: _Smp() for k in joints}
     chunks = []
-    prof = MirrorLiftProfile()  # what assemble() uses by default
-    live = LiveAssembler(model, prof, prof, chunks.append, batch_scans=7)
+    # what assemble() uses by default: the design's profiles
+    live = LiveAssembler(model, model.lift_left, model.lift_right, chunks.append, batch_scans=7)
     pos = dict.fromkeys(joints, 0)
     peak = 0
     for sc in scans:

@@ -35,7 +35,8 @@ def capture_from_scans(design, scans, nod, *, mirror_left=None, mirror_right=Non
     mirror_left, mirror_right : samples, "deployed", "lifted" or None
         Lift-servo samples of each side (None: deployed throughout), as for ``assemble``.
     lift_left, lift_right : MirrorLiftProfile, optional
-        The sides' deployed/lifted servo angles (default ``MirrorLiftProfile()``).
+        The sides' deployed/lifted servo angles (default: the design's,
+        :func:`~nodlidar.runtime.servo_angles.lift_profiles`).
     mirrors_deployed : bool
         False: a capture with both mirrors lifted (every beam direct; not usable by the
         mirror fit, which refuses it).

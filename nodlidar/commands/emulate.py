@@ -100,8 +100,10 @@ def run(args) -> int:
                 print(f"servo URL: {sim.servo_url}")
                 print(f"connect:   nodlidar info --port {sim.lidar_url} --servo-port {sim.servo_url}")
                 print(f"           nodlidar scan --port {sim.lidar_url} --servo-port {sim.servo_url}")
+                lo, ro = sim.lift["mirror_left"], sim.lift["mirror_right"]
                 print("servos:    1 = nod (angle = head pitch), 2 = mirror_left, 3 = mirror_right "
-                      "(0 deployed, pi/2 lifted); Ctrl-C to stop")
+                      f"(deployed {lo.deployed_rad:g} / {ro.deployed_rad:g} rad, lifted "
+                      f"{lo.lifted_rad:+.4f} / {ro.lifted_rad:+.4f} rad); Ctrl-C to stop")
             sys.stdout.flush()
             while not stop.wait(0.2):
                 pass

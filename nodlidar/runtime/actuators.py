@@ -25,7 +25,6 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -36,8 +35,6 @@ from nodlidar.dynamixel import (
     CONTROL_TABLE,
     MAX_ID,
     RAD_PER_TICK,
-    RAD_S_PER_VELOCITY_UNIT,
-    REALTIME_TICK_MODULO,
     CrcError,
     ErrorCode,
     Instruction,
@@ -59,6 +56,18 @@ from nodlidar.dynamixel import (
 )
 from nodlidar.errors import DeviceError, ParameterError, ProtocolError, require
 
+# the pure servo-angle math lives in servo_angles (no pyserial); re-exported here
+from .servo_angles import (
+    MAX_ANGLE_RAD,
+    MAX_RATE_RAD_S,
+    MIN_ANGLE_RAD,
+    MirrorLiftProfile,
+    NodProfile,
+    interpolate_angle,
+    lift_profiles,
+    unwrap_tick_ms,
+)
+
 __all__ = [
     "NOD_ID",
     "BusLineError",
@@ -75,6 +84,7 @@ __all__ = [
     "SampleBuffer",
     "PositionSampler",
     "interpolate_angle",
+    "lift_profiles",
     "unwrap_tick_ms",
 ]
 
@@ -96,9 +106,9 @@ class BusLineError(DeviceError):
     will not help."""
 
 
-_MIN_ANGLE = -math.pi
-_MAX_ANGLE = (4095 - 2048) * RAD_PER_TICK
-_MAX_RATE = 1023 * RAD_S_PER_VELOCITY_UNIT
+_MIN_ANGLE = MIN_ANGLE_RAD
+_MAX_ANGLE = MAX_ANGLE_RAD
+_MAX_RATE = MAX_RATE_RAD_S
 # READ 120..135 in one go: realtime tick, moving, moving status, pwm, current,
 # present velocity, present position.
 _STATE_ADDR, _STATE_LEN = 120, 16
@@ -513,65 +523,6 @@ def _check_id(servo_id: int) -> None:
 # -- nod ramp ---------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class NodProfile:
-    """The nod: a linear ramp back and forth between two pitch limits.
-
-    Attributes
-    ----------
-    lower_rad, upper_rad : float
-        Pitch limits [rad] (servo angle, 0 = tick 2048), ``lower < upper``.
-    rate_rad_s : float
-        Nod rate [rad/s] (constant angular speed along each ramp).
-    """
-
-    lower_rad: float
-    upper_rad: float
-    rate_rad_s: float
-
-    def __post_init__(self) -> None:
-        require(
-            math.isfinite(self.lower_rad)
-            and math.isfinite(self.upper_rad)
-            and _MIN_ANGLE <= self.lower_rad < self.upper_rad <= _MAX_ANGLE,
-            "nod.limits_rad",
-            (self.lower_rad, self.upper_rad),
-            f"{_MIN_ANGLE:.4f} <= lower < upper <= {_MAX_ANGLE:.4f}",
-        )
-        require(
-            math.isfinite(self.rate_rad_s) and 0 < self.rate_rad_s <= _MAX_RATE,
-            "nod.rate_rad_s",
-            self.rate_rad_s,
-            f"(0, {_MAX_RATE:.3f}] rad/s",
-        )
-
-    @property
-    def amplitude_rad(self) -> float:
-        """Sweep ``upper - lower`` [rad]."""
-        return self.upper_rad - self.lower_rad
-
-    @property
-    def sweep_time_s(self) -> float:
-        """Duration of one ramp (lower -> upper) [s]."""
-        return self.amplitude_rad / self.rate_rad_s
-
-    @property
-    def period_s(self) -> float:
-        """Duration of a full nod (up and down) [s]."""
-        return 2.0 * self.sweep_time_s
-
-    def angle_at(self, t, t_start: float = 0.0):
-        """Ideal nod angle [rad] at time(s) ``t`` [s]: at ``lower`` at ``t_start``, rising.
-
-        Vectorised; a triangle wave with turnarounds every :attr:`sweep_time_s`.
-        """
-        tau = np.mod(np.asarray(t, dtype=float) - t_start, self.period_s)
-        up = tau <= self.sweep_time_s
-        s = np.where(up, tau, self.period_s - tau) * self.rate_rad_s
-        out = self.lower_rad + s
-        return float(out) if out.ndim == 0 else out
-
-
 class NodController:
     """Drive the nod servo through the :class:`NodProfile` ramp in a background thread.
 
@@ -762,47 +713,6 @@ class NodController:
 # -- mirror lift ------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class MirrorLiftProfile:
-    """Angles of one mirror-lift servo.
-
-    Attributes
-    ----------
-    deployed_rad : float
-        Servo angle [rad] with the mirror in its working (deployed) position.
-    lifted_rad : float
-        Servo angle [rad] with the mirror lifted out of the beam.
-    rate_rad_s : float
-        Lift speed [rad/s].
-    """
-
-    deployed_rad: float = 0.0
-    lifted_rad: float = math.pi / 2
-    rate_rad_s: float = 1.0
-
-    def __post_init__(self) -> None:
-        for name in ("deployed_rad", "lifted_rad"):
-            v = getattr(self, name)
-            require(
-                math.isfinite(v) and _MIN_ANGLE <= v <= _MAX_ANGLE,
-                f"mirror.{name}",
-                v,
-                f"[{_MIN_ANGLE:.4f}, {_MAX_ANGLE:.4f}]",
-            )
-        require(
-            self.deployed_rad != self.lifted_rad,
-            "mirror.lifted_rad",
-            self.lifted_rad,
-            "different from deployed_rad",
-        )
-        require(
-            math.isfinite(self.rate_rad_s) and 0 < self.rate_rad_s <= _MAX_RATE,
-            "mirror.rate_rad_s",
-            self.rate_rad_s,
-            f"(0, {_MAX_RATE:.3f}] rad/s",
-        )
-
-
 Side = Literal["left", "right", "both"]
 
 
@@ -813,8 +723,13 @@ class MirrorLift:
     ----------
     bus : DynamixelBus
         Open bus.
-    left, right : MirrorLiftProfile
+    left, right : MirrorLiftProfile, optional
         Angles of each side (``right`` defaults to ``left``).
+    design : Design, optional
+        Solved design: the profiles of the sides not given come from
+        :func:`~nodlidar.runtime.servo_angles.lift_profiles` (its lift angle, the sign each
+        side's servo turns). One of ``left`` or ``design`` is needed: a lift angle with no
+        design would be a guess, and a wrong sign swings the glass towards the lidar.
     left_id, right_id : int
         Servo IDs.
     tolerance_rad : float
@@ -827,6 +742,7 @@ class MirrorLift:
         left: MirrorLiftProfile | None = None,
         right: MirrorLiftProfile | None = None,
         *,
+        design=None,
         left_id: int = MIRROR_LEFT_ID,
         right_id: int = MIRROR_RIGHT_ID,
         tolerance_rad: float = 3 * RAD_PER_TICK,
@@ -835,9 +751,14 @@ class MirrorLift:
         _check_id(right_id)
         require(left_id != right_id, "mirror.right_id", right_id, f"!= left_id ({left_id})")
         require(tolerance_rad > 0, "mirror.tolerance_rad", tolerance_rad, "> 0")
+        if design is not None:
+            dl, dr = lift_profiles(design)
+            left, right = left or dl, right or dr
+        if left is None:
+            raise ParameterError("mirror.left", None,
+                                 "a MirrorLiftProfile or design= (MirrorLiftProfile.for_design)")
         self.bus = bus
-        self.profiles = {"left": left or MirrorLiftProfile()}
-        self.profiles["right"] = right or self.profiles["left"]
+        self.profiles = {"left": left, "right": right or left}
         self.ids = {"left": left_id, "right": right_id}
         self.tolerance_rad = float(tolerance_rad)
 
@@ -1156,86 +1077,3 @@ class PositionSampler:
                 return
             if self.period_s:
                 self._stop.wait(self.period_s)
-
-
-# -- interpolation ----------------------------------------------------------------
-
-
-def interpolate_angle(
-    sample_times,
-    sample_angles,
-    query_times,
-    *,
-    outside: Literal["nan", "clamp", "extrapolate"] = "nan",
-) -> np.ndarray:
-    """Angle at each query time by linear interpolation between samples.
-
-    Parameters
-    ----------
-    sample_times : array_like, shape (n,)
-        Sample times [s], strictly increasing.
-    sample_angles : array_like, shape (n,)
-        Angles [rad] at ``sample_times``.
-    query_times : array_like
-        Times [s] to evaluate (any shape, e.g. one per lidar beam).
-    outside : {"nan", "clamp", "extrapolate"}
-        Queries before the first / after the last sample: NaN (default, so a beam
-        newer than the newest sample is not silently given a stale angle), the
-        end sample's angle, or linear extrapolation of the end segment.
-
-    Returns
-    -------
-    ndarray of float
-        Angles [rad], shape of ``query_times``.
-
-    Raises
-    ------
-    ParameterError
-        Mismatched lengths, too few samples, unsorted times, bad ``outside``.
-    """
-    t = np.asarray(sample_times, dtype=float)
-    a = np.asarray(sample_angles, dtype=float)
-    q = np.asarray(query_times, dtype=float)
-    require(t.ndim == 1, "sample_times.ndim", t.ndim, "1")
-    require(a.shape == t.shape, "sample_angles.shape", a.shape, f"{t.shape} (as sample_times)")
-    require(
-        outside in ("nan", "clamp", "extrapolate"),
-        "outside",
-        outside,
-        "'nan', 'clamp' or 'extrapolate'",
-    )
-    n_min = 2 if outside == "extrapolate" else 1
-    require(t.size >= n_min, "sample_times.size", t.size, f">= {n_min}")
-    if t.size > 1:
-        d = np.diff(t)
-        if not np.all(d > 0):
-            k = int(np.argmin(d > 0))
-            raise ParameterError(
-                f"sample_times[{k + 1}]",
-                float(t[k + 1]),
-                f"> sample_times[{k}] = {t[k]!r} (strictly increasing)",
-            )
-    out = np.interp(q, t, a)
-    if outside == "clamp":
-        return out
-    lo, hi = q < t[0], q > t[-1]
-    if outside == "nan":
-        out = np.where(lo | hi, np.nan, out)
-    else:
-        s0 = (a[1] - a[0]) / (t[1] - t[0])
-        s1 = (a[-1] - a[-2]) / (t[-1] - t[-2])
-        out = np.where(lo, a[0] + s0 * (q - t[0]), out)
-        out = np.where(hi, a[-1] + s1 * (q - t[-1]), out)
-    return out
-
-
-def unwrap_tick_ms(tick_ms) -> np.ndarray:
-    """Unwrap the servo realtime tick (ms modulo 32768) to seconds since the first sample.
-
-    Assumes consecutive samples are less than 32.768 s apart.
-    """
-    k = np.asarray(tick_ms, dtype=np.int64)
-    if k.size == 0:
-        return np.zeros(0)
-    d = np.diff(k) % REALTIME_TICK_MODULO
-    return np.concatenate([[0], np.cumsum(d)]) * 1e-3

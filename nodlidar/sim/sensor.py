@@ -10,8 +10,11 @@ Each scan's ranges come from :class:`~nodlidar.sim.raycast.SceneSimulator`, with
 and mirror servo angles read from the Dynamixel emulator's true shaft-angle history
 (:meth:`DxlEmulator.joint_angle`) at every beam's own time: whatever the runtime commands
 the servos is what the scans see. The nod servo angle is the head pitch [rad]; a mirror
-servo angle ``a`` lifts its side by ``clip((a - deployed)/(lifted - deployed), 0, 1)`` of
-the design's lift angle (``MirrorLiftProfile``, deployed 0, lifted pi/2 by default).
+servo angle ``a`` lifts its side by the fraction ``clip((a - deployed)/(lifted - deployed),
+0, 1)`` (:func:`nodlidar.hinge.lift_fraction`) of its lift about the side's lift axis, with
+the side's ``MirrorLiftProfile``: by default the design's
+(:func:`nodlidar.runtime.servo_angles.lift_profiles`: deployed 0, lifted ``LiftAxis.lift_rad``,
+so one servo radian turns the carrier by one radian).
 
 Noise is seeded per scan (``default_rng([seed, k])``), so a scan's ranges do not depend on
 when or how often it is asked for.
@@ -19,19 +22,21 @@ when or how often it is asked for.
 
 from __future__ import annotations
 
-import math
 import threading
 from collections import OrderedDict
 from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 
 from ..errors import ParameterError
 from ..geometry import Perturbation
+from ..hinge import lift_fraction
+from ..runtime.servo_angles import MirrorLiftProfile, lift_profiles
 from .clock import SimClock
 from .dxl_emulator import DxlEmulator
 from .faults import FaultConfig
-from .raycast import ScanTruth, SceneSimulator, lift_fraction
+from .raycast import ScanTruth, SceneSimulator
 from .scene import Scene
 from .scip_emulator import ScipEmulator
 
@@ -62,9 +67,12 @@ class SimulatedSensor:
         Noise seed.
     faults : FaultConfig, optional
         Link faults injected on the lidar's outgoing messages.
-    mirror_deployed_rad, mirror_lifted_rad : float
-        Mirror servo angles [rad] of the deployed and lifted positions
-        (``MirrorLiftProfile`` defaults).
+    lift_left, lift_right : MirrorLiftProfile, optional
+        The mirror servos' deployed and lifted angles [rad] of each side (default: the
+        design's, :func:`~nodlidar.runtime.servo_angles.lift_profiles`).
+    mirror_deployed_rad, mirror_lifted_rad : float, optional
+        Older spelling: both sides' deployed and lifted servo angles [rad] (each replaces
+        that angle of the design's profiles; not with ``lift_left``/``lift_right``).
     host : str
         TCP transport: the address both servers listen on (loopback by default).
     lidar_port, servo_port : int
@@ -79,8 +87,11 @@ class SimulatedSensor:
     def __init__(self, design, scene: Scene | str | None = None, *,
                  perturbations: Mapping[str, Perturbation] | None = None, transport: str = "pty",
                  rate: float = 1.0, noise: bool = True, seed: int = 0,
-                 faults: FaultConfig | None = None, mirror_deployed_rad: float = 0.0,
-                 mirror_lifted_rad: float = math.pi / 2, host: str = "127.0.0.1",
+                 faults: FaultConfig | None = None,
+                 lift_left: MirrorLiftProfile | None = None,
+                 lift_right: MirrorLiftProfile | None = None,
+                 mirror_deployed_rad: float | None = None,
+                 mirror_lifted_rad: float | None = None, host: str = "127.0.0.1",
                  lidar_port: int = 0, servo_port: int = 0, scip1: bool = False):
         if transport not in ("pty", "tcp"):
             raise ParameterError("transport", transport, "'pty' or 'tcp'")
@@ -97,8 +108,15 @@ class SimulatedSensor:
         self.noise = bool(noise)
         self.seed = int(seed)
         self.faults = faults
-        self.mirror_deployed_rad = float(mirror_deployed_rad)
-        self.mirror_lifted_rad = float(mirror_lifted_rad)
+        old = {k: float(v) for k, v in (("deployed_rad", mirror_deployed_rad),
+                                         ("lifted_rad", mirror_lifted_rad)) if v is not None}
+        if old and (lift_left is not None or lift_right is not None):
+            raise ParameterError("mirror_deployed_rad/mirror_lifted_rad", tuple(old.values()),
+                                 "not with lift_left/lift_right (give the profiles only)")
+        dl, dr = lift_profiles(design)
+        #: Lift-servo profile of each side: servo angle -> lift fraction.
+        self.lift = {"mirror_left": replace(lift_left or dl, **old),
+                     "mirror_right": replace(lift_right or dr, **old)}
         self.simulator = SceneSimulator(design, scene, perturbations)
         self.scene = self.simulator.scene
         self.clock = SimClock(rate)
@@ -118,10 +136,8 @@ class SimulatedSensor:
         t_scan = k * sim.lidar.scan_period_s if t_scan_s is None else t_scan_s
         t = sim.beam_times(t_scan)
         nod = self.dxl.joint_angle("nod", t)
-        fl = lift_fraction(self.dxl.joint_angle("mirror_left", t), self.mirror_deployed_rad,
-                           self.mirror_lifted_rad)
-        fr = lift_fraction(self.dxl.joint_angle("mirror_right", t), self.mirror_deployed_rad,
-                           self.mirror_lifted_rad)
+        fl, fr = (lift_fraction(self.dxl.joint_angle(j, t), self.lift[j].deployed_rad,
+                                self.lift[j].lifted_rad) for j in ("mirror_left", "mirror_right"))
         rng = np.random.default_rng([self.seed, int(k)]) if self.noise else None
         truth = sim.scan(t_scan, nod, fl, fr, noise=self.noise, rng=rng)
         with self._lock:
