@@ -470,10 +470,11 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
     """
     refuse_renamed(renamed, "assemble")
     require(frame in FRAMES, "frame", frame, ", ".join(FRAMES))
+    robot_T = np.eye(4)  # robot_from_sensor, checked before any work
     if frame in ("robot", "world"):
         require(robot_from_sensor is not None, "robot_from_sensor", None,
                 f"a 4x4 transform for frame {frame!r}")
-        robot_from_sensor = check_transform(robot_from_sensor, "robot_from_sensor")
+        robot_T = check_transform(robot_from_sensor, "robot_from_sensor")
     if frame == "world":
         require(world_from_robot is not None, "world_from_robot", None,
                 "poses for frame 'world'")
@@ -523,7 +524,7 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
         xyz = model.deployed.points(steps, r, nod_rad)
 
     if frame in ("robot", "world"):
-        xyz = _apply(robot_from_sensor, xyz)
+        xyz = _apply(robot_T, xyz)
     if frame == "world":
         W: np.ndarray | None
         if isinstance(world_from_robot, PoseTrack):
