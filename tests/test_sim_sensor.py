@@ -80,13 +80,13 @@ def test_runtime_drivers_against_the_simulated_sensor(design, transport):
             # lift both mirrors: the side-window beams now go direct (or nowhere: NaN)
             bus.set_goal_angle(1, 0.0)
             _wait_still(bus, 1)
-            MirrorLift(bus).lift("both", timeout_s=5.0)
+            MirrorLift(bus, design=design).lift("both", timeout_s=5.0)
             s = urg.scan()
             ok = _check_wall(design, s, bus.present_angle(1), lifted=True)
             behind = np.cos(design.lidar.bearing_from_step(s.steps)) < -0.05
             assert behind.sum() > 100 and not ok[behind].any()
             assert np.all(s.ranges_mm[behind] == 0)  # URG-04LX code 0: no return
-            MirrorLift(bus).reset("both", timeout_s=5.0)
+            MirrorLift(bus, design=design).reset("both", timeout_s=5.0)
             assert np.isfinite(urg.scan().ranges_m).all()
 
 
