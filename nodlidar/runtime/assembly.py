@@ -34,7 +34,7 @@ from ..dynamixel import RAD_PER_TICK
 from ..errors import ParameterError, require
 from ..frames import check_transform, refuse_renamed
 from ..geometry import TOL, rotate_about_axis
-from .actuators import MirrorLiftProfile, interpolate_angle
+from .servo_angles import MirrorLiftProfile, interpolate_angle, lift_profiles
 
 if TYPE_CHECKING:
     from ..geometry import Perturbation
@@ -323,6 +323,9 @@ class AssemblyModel:
     range_offset_m, range_scale : float
         The lidar's calibrated range model ``r_measured = (1 + range_scale) r +
         range_offset_m`` [m, -]; :func:`assemble` inverts it before projecting (0, 0: none).
+    lift_left, lift_right : MirrorLiftProfile
+        The design's lift-servo profiles (:func:`~nodlidar.runtime.servo_angles.lift_profiles`):
+        what :func:`assemble` uses when it is given none.
     """
 
     deployed: BeamModel
@@ -334,6 +337,8 @@ class AssemblyModel:
     calibration_id: str = "none"
     range_offset_m: float = 0.0
     range_scale: float = 0.0
+    lift_left: MirrorLiftProfile | None = None
+    lift_right: MirrorLiftProfile | None = None
 
     @classmethod
     def from_design(cls, design: Design,
@@ -379,7 +384,8 @@ class AssemblyModel:
                 "a finite scale error within +-0.5")
         return cls(deployed, design.beam_model(perts, mirrors_deployed=False), side,
                    clear, design.spec.name, design_hash(design.spec),
-                   calibration_id if (perts or offset or scale) else "none", offset, scale)
+                   calibration_id if (perts or offset or scale) else "none", offset, scale,
+                   *lift_profiles(design))
 
     @property
     def lidar(self):
@@ -447,7 +453,8 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
     mirror_left, mirror_right : samples, "deployed", "lifted" or None
         Lift-servo samples of each side (None = deployed throughout).
     lift_left, lift_right : MirrorLiftProfile
-        Deployed/lifted servo angles of each side (default ``MirrorLiftProfile()``).
+        Deployed/lifted servo angles of each side (default: the design's,
+        ``model.lift_left`` / ``model.lift_right``).
     lift_tolerance_rad : float
         How close to an end angle counts as at it [rad].
     frame : {"sensor", "robot", "world"}
@@ -502,8 +509,8 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
     refl = np.flatnonzero(mirror != DIRECT)
     if refl.size:
         tr = t[refl]
-        left = _side_state(mirror_left, tr, lift_left or MirrorLiftProfile(), lift_tolerance_rad)
-        right = _side_state(mirror_right, tr, lift_right or MirrorLiftProfile(), lift_tolerance_rad)
+        left = _side_state(mirror_left, tr, lift_left or model.lift_left, lift_tolerance_rad)
+        right = _side_state(mirror_right, tr, lift_right or model.lift_right, lift_tolerance_rad)
         state[refl] = np.where(model.mirror_side[mirror[refl]] == 0, left, right)
     moving = (state == BETWEEN) & have_nod
     n_moving = int(moving.sum())
