@@ -17,9 +17,10 @@ import textwrap
 from typing import NoReturn
 
 from . import __version__, commands
-from .commands._output import (catch_swallowed_interrupts, configure, paragraphs, plain,
-                               raise_if_interrupted)
+from .commands._output import catch_swallowed_interrupts, configure, paragraphs, plain, raise_if_interrupted
 from .errors import NodlidarError
+
+__all__ = ["main", "build_parser", "EXIT_CODES"]
 
 EXIT_OK = 0
 EXIT_OS = 1  # the system refused (device missing, port busy, disk full)

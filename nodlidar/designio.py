@@ -9,6 +9,8 @@ import numpy as np
 from .solver import Design
 from .verify import verify
 
+__all__ = ["mirror_table", "paper_comparison"]
+
 
 def mirror_table(design: Design) -> list[dict[str, Any]]:
     """One dict per mirror with the solver's results and the ray-trace check at D.

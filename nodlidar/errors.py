@@ -8,6 +8,19 @@ from __future__ import annotations
 
 from typing import Any
 
+__all__ = [
+    "NodlidarError",
+    "ParameterError",
+    "InputFileError",
+    "DesignFileError",
+    "UnknownKeyError",
+    "InfeasibleDesignError",
+    "ProtocolError",
+    "DeviceError",
+    "CalibrationError",
+    "require",
+]
+
 
 class NodlidarError(Exception):
     """Base class of every error nodlidar raises on purpose."""
@@ -75,7 +88,8 @@ class CalibrationError(NodlidarError, ValueError):
     walls, ill-conditioned fit) or a calibration file does not belong to the design."""
 
 
-def require(cond: bool, field: str, value: Any, allowed: str) -> None:
-    """Raise :class:`ParameterError` unless ``cond`` holds."""
+def require(cond: object, field: str, value: Any, allowed: str) -> None:
+    """Raise :class:`ParameterError` unless ``cond`` holds (a ``bool`` or a numpy scalar bool:
+    anything with a truth value; an array of several elements raises ``ValueError``)."""
     if not cond:
         raise ParameterError(field, value, allowed)

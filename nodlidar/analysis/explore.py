@@ -36,7 +36,8 @@ from ..errors import NodlidarError, ParameterError, require
 from ..spec import DesignSpec
 
 __all__ = ["Sweep", "ExploreResult", "explore", "evaluate_design", "pareto_front",
-           "load_exploration", "EXPLORE_RANGES_M", "OBJECTIVES", "MAX_DESIGNS"]
+           "load_exploration", "report_section", "nan_to_none", "EXPLORE_RANGES_M", "OBJECTIVES",
+           "MAX_DESIGNS"]
 
 #: Arc radii [m] besides D at which the interleave error is tabulated.
 EXPLORE_RANGES_M = (1.0, 2.0, 6.0)
@@ -266,7 +267,7 @@ class ExploreResult:
     def write_json(self, path: str | Path) -> Path:
         p = Path(path)
         # NaN is not JSON: missing metrics of refused designs are written as null
-        p.write_text(json.dumps(_nan_to_none(self.to_dict()), indent=1))
+        p.write_text(json.dumps(nan_to_none(self.to_dict()), indent=1))
         return p
 
     def write_csv(self, path: str | Path) -> Path:
@@ -319,13 +320,15 @@ class ExploreResult:
         return out
 
 
-def _nan_to_none(x: Any) -> Any:
+def nan_to_none(x: Any) -> Any:
+    """``x`` with every float NaN, also inside dicts and lists, replaced by ``None`` (JSON has
+    no NaN: strict readers refuse it)."""
     if isinstance(x, float) and math.isnan(x):
         return None
     if isinstance(x, dict):
-        return {k: _nan_to_none(v) for k, v in x.items()}
+        return {k: nan_to_none(v) for k, v in x.items()}
     if isinstance(x, list):
-        return [_nan_to_none(v) for v in x]
+        return [nan_to_none(v) for v in x]
     return x
 
 
@@ -448,4 +451,4 @@ def report_section(result: ExploreResult, doc: Any, put: Callable[[str, str, Any
         doc.para(f"({len(front) - 40} more Pareto designs in the exploration's CSV/JSON.)")
     return {"n_designs": result.n_designs, "n_feasible": result.n_feasible,
             "sweeps": [{"key": s.key, "values": list(s.values)} for s in result.sweeps],
-            "pareto": _nan_to_none(front)}
+            "pareto": nan_to_none(front)}

@@ -15,7 +15,7 @@ import logging
 import re
 import sys
 
-__all__ = ["configure", "status", "progress_disable", "plain", "LOGGER",
+__all__ = ["configure", "status", "progress_disable", "plain", "paragraphs", "LOGGER",
            "catch_swallowed_interrupts", "raise_if_interrupted"]
 
 LOGGER = "nodlidar"

@@ -86,9 +86,9 @@ def run(args) -> int:
     front = [r for r in res.rows if r["pareto"]]
     front.sort(key=lambda r: r["rms_error_deg"])
     if args.json:
-        from ..analysis.explore import _nan_to_none
+        from ..analysis.explore import nan_to_none
 
-        json.dump(_nan_to_none({"csv": str(csv_path), "json": str(json_path),
+        json.dump(nan_to_none({"csv": str(csv_path), "json": str(json_path),
                                 "figures": [str(f) for f in figs], "n_designs": res.n_designs,
                                 "n_feasible": res.n_feasible, "pareto": front}),
                   sys.stdout, indent=2)

@@ -13,6 +13,8 @@ import time
 
 from ..errors import require
 
+__all__ = ["SimClock", "ManualClock"]
+
 
 class SimClock:
     """Simulated time [s] = ``rate`` x wall time elapsed since construction (+ ``t0``).
