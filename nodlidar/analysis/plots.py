@@ -50,9 +50,9 @@ def _grid(ax, n: int, *, sharex: bool = False):
     if ax is None:
         cols = 2 if n > 1 else 1
         rows = int(np.ceil(n / cols))
-        fig, axs = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.4 * rows), squeeze=False,
-                                sharex=sharex, layout="constrained")
-        axs = list(axs.ravel())
+        fig, grid = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.4 * rows), squeeze=False,
+                                 sharex=sharex, layout="constrained")
+        axs = list(grid.ravel())
         for extra in axs[n:]:
             extra.set_visible(False)
         return fig, axs[:n]

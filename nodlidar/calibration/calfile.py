@@ -163,7 +163,8 @@ def calibration_from_result(result: CalibrationResult, *, source: str = "",
     return Calibration(
         id=cid, design_name=result.design_name, design_hash=result.design_hash, created=created,
         model=result.model, perturbations=result.perturbations,
-        sigma={k: tuple(float(v) for v in m.sigma) for k, m in result.mirrors.items()},
+        sigma={k: (float(m.sigma[0]), float(m.sigma[1]), float(m.sigma[2]))
+               for k, m in result.mirrors.items()},
         residuals={k: m.after.to_dict() for k, m in result.mirrors.items()},
         residuals_before={k: m.before.to_dict() for k, m in result.mirrors.items()},
         source=source, ambiguous_steps=tuple(result.ambiguous_steps),
@@ -209,8 +210,8 @@ def read_calibration(path: str | Path) -> Calibration:
         perts[name] = Perturbation(_num(m, "dalpha_rad", where), _num(m, "dbeta_rad", where),
                                    _num(m, "dd_m", where))
         if "sigma_dalpha_rad" in m:
-            sig[name] = tuple(_num(m, k, where) for k in
-                              ("sigma_dalpha_rad", "sigma_dbeta_rad", "sigma_dd_m"))
+            sig[name] = (_num(m, "sigma_dalpha_rad", where), _num(m, "sigma_dbeta_rad", where),
+                         _num(m, "sigma_dd_m", where))
         if "residuals" in m:
             res[name] = dict(m["residuals"])
         if "residuals_before" in m:

@@ -17,7 +17,8 @@ MIRROR_COLOURS = {"direct": "tab:blue", "R1": "darkviolet", "R2": "black", "L1":
 _MAX_POINTS = 4000  # per series and panel: enough to see the band, fast to draw
 
 
-def _colour(name: str, i: int) -> str:
+def _colour(name: str, i: int) -> str | tuple[float, float, float, float]:
+    """The mirror's colour: a Matplotlib name, else an RGBA of the tab10 cycle."""
     import matplotlib  # noqa: TID251 (lazy, inside a plot function)
 
     return MIRROR_COLOURS.get(name) or matplotlib.colormaps["tab10"](i % 10)

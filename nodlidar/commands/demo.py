@@ -40,7 +40,7 @@ class _Steps:
 
     def __init__(self) -> None:
         self.n = 0
-        self.t0 = None
+        self.t0: float | None = None
         self.outputs: list[tuple[str, Path]] = []
 
     def start(self, title: str) -> None:

@@ -113,11 +113,7 @@ def run(args) -> int:
     if args.port is not None or args.servo_port is not None:
         require(args.recording == "live", "recording", args.recording,
                 "'live' with --port/--servo-port")
-    seg = trk = None
     show = _Printer(args.json)
-
-    def step(scan_points) -> None:
-        show(trk.update(seg.update(scan_points)))
 
     if args.recording and not args.sim and args.recording != "live":
         from ..tracking.recording import scans_from_recording
@@ -133,6 +129,10 @@ def run(args) -> int:
         scans = None
     seg = OnlineSegmenter(range_sigma=design.lidar.range_sigma_m)
     trk = Tracker(TrackerConfig(entropy=args.entropy))
+
+    def step(scan_points) -> None:
+        show(trk.update(seg.update(scan_points)))
+
     if args.recording == "live" and not args.sim:
         _live(args, step)
         return 0

@@ -641,6 +641,7 @@ def scene_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Scene:
     for i, m in enumerate(data.get("mover", [])):
         where = f"{source}: mover[{i}]"
         shape_kind = m.get("shape", "cylinder")
+        shape: Cylinder | Box
         if shape_kind == "cylinder":
             shape = Cylinder(m.get("radius_m", 0.18), m.get("height_m", 1.0), m.get("base_z_m", 0.0))
         elif shape_kind == "box":
@@ -678,7 +679,7 @@ def room_scene() -> Scene:
 #: tall crosses in front of the sensor with its axis 2 m ahead (the design distance D, where
 #: the reflected beams interleave best), along the paper's heading 89.4 deg for 1.6 m
 #: (y from -0.8 to +0.8 m: inside the 80 deg middle window at 2 m) at 0.13 m/s, then back.
-PAPER_TRACKING = {
+PAPER_TRACKING: dict[str, Any] = {
     "radius_m": 0.18,
     "height_m": 1.0,
     "start_m": (2.0, -0.8, 0.0),
