@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -519,3 +520,67 @@ def test_interrupted_recording_is_closed(tmp_path, storage):
     assert (tmp_path / "b" / "metadata.yaml").exists()
     back = read_bag(tmp_path / "b")
     assert not back.recovered and len(back.scans) == 3 and back.clouds == 3
+
+
+# -- lift profiles in the header (issue 18: the lift angle from the design) --------------
+
+
+def test_header_lift_profiles_come_from_the_design(tmp_path):
+    """No profiles given: the header holds the recorded design's (lift_angle_rad = 1.2,
+    each side's sign), and reading gives them back; a profile given is kept as is."""
+    from nodlidar.runtime.servo_angles import MirrorLiftProfile, lift_profiles
+    from nodlidar.solver import solve
+    from nodlidar.spec import design_from_dict
+
+    old = "lift_angle_rad = 1.5707963267948966"
+    assert DESIGN_TOML.count(old) == 1
+    toml = DESIGN_TOML.replace(old, "lift_angle_rad = 1.2")
+    want = lift_profiles(solve(design_from_dict(tomllib.loads(toml))))
+    assert_allclose([want[0].lifted_rad, want[1].lifted_rad], [-1.2, 1.2], rtol=0, atol=1e-15)
+    rng = np.random.default_rng(1)
+    right = MirrorLiftProfile(0.1, 1.3, 2.0)
+    for name, kw, expect in (("design", {}, want), ("given", {"lift_right": right},
+                                                    (want[0], right))):
+        with BagRecorder(tmp_path / name, toml, extra={"dmin_mm": 20}, clock=lambda: 11.9,
+                         clouds=False, **kw) as rec:
+            rec.write_scan(fake_scan(0, rng), URG)
+        back = read_bag(tmp_path / name)
+        assert back.lift_profiles() == expect
+        assert back.header["lift_left"] == {"deployed_rad": 0.0,
+                                            "lifted_rad": expect[0].lifted_rad,
+                                            "rate_rad_s": 1.0}
+
+
+def test_recording_with_the_old_default_profiles_still_replays(tmp_path):
+    """Every recording before the lift angle came from the design has the profile
+    ``(0, pi/2)`` on both sides in its header; it loads, and replay classifies the mirror
+    samples with the recorded profiles, not the design's: left samples at +pi/2 are
+    lifted (the design's left lifted angle is -pi/2), right samples at 0 deployed."""
+    from nodlidar.runtime.servo_angles import MirrorLiftProfile, lift_profiles
+    from nodlidar.solver import solve
+    from nodlidar.spec import load_design
+
+    design = solve(load_design(PAPER_DESIGN))
+    assert lift_profiles(design)[0].lifted_rad == pytest.approx(-np.pi / 2)
+    old = MirrorLiftProfile(0.0, np.pi / 2)
+    rng = np.random.default_rng(2)
+    scans = [fake_scan(k, rng) for k in range(3)]
+    t = 12.0 + np.arange(0, 0.4, 0.004)
+    with BagRecorder(tmp_path / "old", DESIGN_TOML, extra={"dmin_mm": 20}, clock=lambda: 11.9,
+                     lift_left=old, lift_right=old) as rec:
+        for s in scans:
+            rec.write_scan(s, URG)
+        rec.write_samples("nod", t, np.zeros_like(t))
+        rec.write_samples("mirror_left", t[::10], np.full(len(t[::10]), np.pi / 2))
+        rec.write_samples("mirror_right", t[::10], np.zeros(len(t[::10])))
+    header = read_bag(tmp_path / "old").header
+    assert header["lift_left"] == header["lift_right"] == {
+        "deployed_rad": 0.0, "lifted_rad": np.pi / 2, "rate_rad_s": 1.0}
+    contents, cloud = replay_bag(tmp_path / "old")
+    assert contents.lift_profiles() == (old, old)
+    assert cloud.meta["mirror_moving"] == 0
+    # independently: the left windows' steps (the design's map) are exactly the lifted ones
+    left = [i for i, m in enumerate(design.mirrors) if m.side == "L"]
+    on_left = np.isin(design.mirror_of_step[cloud.step - URG.step_min], left)
+    assert on_left.sum() > 100
+    assert_array_equal(cloud.lifted, on_left)

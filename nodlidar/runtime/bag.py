@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import DesignFileError, NodlidarError, ParameterError
-from .actuators import MirrorLiftProfile
+from .servo_angles import MirrorLiftProfile, lift_profiles
 
 __all__ = ["BagRecorder", "BagContents", "BagWriteError", "read_bag", "read_recording",
            "recover_bag", "replay_bag", "iter_messages", "design_from_header", "STORAGES",
@@ -135,7 +135,10 @@ class BagRecorder:
         The design file's text.
     calibration_toml : str, optional
         The calibration file's text, if one is applied.
-    lift_left, lift_right : MirrorLiftProfile
+    lift_left, lift_right : MirrorLiftProfile, optional
+        The lift servos' profiles, written to the header; a side not given takes the
+        design's (:func:`~nodlidar.runtime.servo_angles.lift_profiles`, found at
+        :meth:`open`).
     extra : dict, optional
         More JSON-serialisable metadata (e.g. the device info, ``dmin_mm``).
     storage : {"mcap", "sqlite3"}
@@ -159,13 +162,10 @@ class BagRecorder:
             raise ParameterError("--storage", storage, " or ".join(STORAGES))
         self.path = Path(path)
         self.storage = storage
-        lift_left = lift_left or MirrorLiftProfile()
-        lift_right = lift_right or lift_left
         self.lift = {"mirror_left": lift_left, "mirror_right": lift_right}
+        # lift_left/lift_right are filled in at open() (from the design if not given)
         self.header = {"format": FORMAT, "design_toml": design_toml,
-                       "calibration_toml": calibration_toml,
-                       "lift_left": _lift_dict(lift_left), "lift_right": _lift_dict(lift_right),
-                       **(extra or {})}
+                       "calibration_toml": calibration_toml, **(extra or {})}
         self.clock = clock or time.monotonic
         self.clouds = bool(clouds)
         self.scans = 0
@@ -189,14 +189,19 @@ class BagRecorder:
         self._ts = ts = _typestore()
         if self.path.exists():
             raise NodlidarError(f"bag {self.path} exists already; choose a new --out directory")
-        if self.clouds:
-            from .assembly import AssemblyModel
-
+        if self.clouds or None in self.lift.values():
             # built from the recorded text exactly as replay builds it, so the per-scan
             # PointCloud2 is the replay's cloud
             design, perts, cal_id = design_from_header(self.header)
+            for j, p in zip(self.lift, lift_profiles(design), strict=True):
+                self.lift[j] = self.lift[j] or p
+        if self.clouds:
+            from .assembly import AssemblyModel
+
             self._model = AssemblyModel.from_design(design, perts, cal_id)
             self._design, self._patches = design, design.patches(perts)
+        self.header["lift_left"] = _lift_dict(self.lift["mirror_left"])
+        self.header["lift_right"] = _lift_dict(self.lift["mirror_right"])
         now_s = float(self.clock())
         self.epoch_offset_ns = time.time_ns() - _ns(now_s)
         self.header["epoch_offset_ns"] = self.epoch_offset_ns

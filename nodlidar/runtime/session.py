@@ -36,6 +36,7 @@ from .actuators import (
     NodController,
     NodProfile,
     PositionSampler,
+    lift_profiles,
 )
 from .assembly import AssemblyModel, PointCloud, ScanBatch, assemble
 
@@ -54,15 +55,16 @@ class Capture:
     scans : list of Scan
     joints : dict
         ``nod`` / ``mirror_left`` / ``mirror_right`` -> (t_s (k,), angle_rad (k,)).
-    lift_left, lift_right : MirrorLiftProfile
+    lift_left, lift_right : MirrorLiftProfile or None
+        The lift servos' profiles (None: the design's, as :func:`assemble` takes them).
     t_start_s, t_end_s : float
         The nod ramp captured (sweep) or the capture's span.
     """
 
     scans: list
     joints: dict[str, tuple[np.ndarray, np.ndarray]]
-    lift_left: MirrorLiftProfile = field(default_factory=MirrorLiftProfile)
-    lift_right: MirrorLiftProfile = field(default_factory=MirrorLiftProfile)
+    lift_left: MirrorLiftProfile | None = None
+    lift_right: MirrorLiftProfile | None = None
     t_start_s: float = float("nan")
     t_end_s: float = float("nan")
 
@@ -126,8 +128,9 @@ class Session:
         self.lidar_timeout_s = float(lidar_timeout_s)
         self.plausibility = bool(plausibility)
         self.log = log or (lambda _m: None)
-        self.lift_left = MirrorLiftProfile()
-        self.lift_right = MirrorLiftProfile()
+        # the lift servos' profiles come from the design (lift_profiles), set by open()
+        self.lift_left: MirrorLiftProfile | None = None
+        self.lift_right: MirrorLiftProfile | None = None
         self.design = None
         self.calibration = None
         self.model: AssemblyModel | None = None
@@ -155,6 +158,7 @@ class Session:
             self.calibration = load_calibration(self.calibration_path, self.design)
             perts, cal_id = self.calibration.perturbations, self.calibration.id
         self.model = AssemblyModel.from_design(self.design, perts, cal_id)
+        self.lift_left, self.lift_right = lift_profiles(self.design)
         try:
             if self.simulated:
                 from ..sim.scene import load_scene
@@ -163,7 +167,8 @@ class Session:
                 scene = load_scene(self.scene)  # a TOML scene is read here, not in a constructor
                 self.sim = SimulatedSensor(self.design, scene, perturbations=self.sim_perturbations,
                                            transport=self.transport,
-                                           rate=self.sim_rate, noise=self.noise, seed=self.seed)
+                                           rate=self.sim_rate, noise=self.noise, seed=self.seed,
+                                           lift_left=self.lift_left, lift_right=self.lift_right)
                 self.sim.start()
                 self.time_source = self.sim.clock.now
                 lidar_url, servo_url = self.sim.lidar_url, self.sim.servo_url

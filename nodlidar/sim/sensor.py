@@ -25,7 +25,6 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict
 from collections.abc import Mapping
-from dataclasses import replace
 
 import numpy as np
 
@@ -70,9 +69,6 @@ class SimulatedSensor:
     lift_left, lift_right : MirrorLiftProfile, optional
         The mirror servos' deployed and lifted angles [rad] of each side (default: the
         design's, :func:`~nodlidar.runtime.servo_angles.lift_profiles`).
-    mirror_deployed_rad, mirror_lifted_rad : float, optional
-        Older spelling: both sides' deployed and lifted servo angles [rad] (each replaces
-        that angle of the design's profiles; not with ``lift_left``/``lift_right``).
     host : str
         TCP transport: the address both servers listen on (loopback by default).
     lidar_port, servo_port : int
@@ -89,9 +85,7 @@ class SimulatedSensor:
                  rate: float = 1.0, noise: bool = True, seed: int = 0,
                  faults: FaultConfig | None = None,
                  lift_left: MirrorLiftProfile | None = None,
-                 lift_right: MirrorLiftProfile | None = None,
-                 mirror_deployed_rad: float | None = None,
-                 mirror_lifted_rad: float | None = None, host: str = "127.0.0.1",
+                 lift_right: MirrorLiftProfile | None = None, host: str = "127.0.0.1",
                  lidar_port: int = 0, servo_port: int = 0, scip1: bool = False):
         if transport not in ("pty", "tcp"):
             raise ParameterError("transport", transport, "'pty' or 'tcp'")
@@ -108,15 +102,10 @@ class SimulatedSensor:
         self.noise = bool(noise)
         self.seed = int(seed)
         self.faults = faults
-        old = {k: float(v) for k, v in (("deployed_rad", mirror_deployed_rad),
-                                         ("lifted_rad", mirror_lifted_rad)) if v is not None}
-        if old and (lift_left is not None or lift_right is not None):
-            raise ParameterError("mirror_deployed_rad/mirror_lifted_rad", tuple(old.values()),
-                                 "not with lift_left/lift_right (give the profiles only)")
         dl, dr = lift_profiles(design)
-        #: Lift-servo profile of each side: servo angle -> lift fraction.
-        self.lift = {"mirror_left": replace(lift_left or dl, **old),
-                     "mirror_right": replace(lift_right or dr, **old)}
+        #: Lift-servo profile of each side: servo angle -> lift fraction. (One pair of
+        #: angles for both sides, as before, would turn one side's carrier the wrong way.)
+        self.lift = {"mirror_left": lift_left or dl, "mirror_right": lift_right or dr}
         self.simulator = SceneSimulator(design, scene, perturbations)
         self.scene = self.simulator.scene
         self.clock = SimClock(rate)
