@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,6 +39,9 @@ from .actuators import (
     lift_profiles,
 )
 from .assembly import AssemblyModel, PointCloud, ScanBatch, assemble
+
+if TYPE_CHECKING:
+    from ..sim.scene import Scene
 
 __all__ = ["Session", "Capture", "DEFAULT_DESIGN", "JOINT_IDS", "LiveAssembler", "CloudSpool",
            "Recorded", "record_capture"]
@@ -93,8 +96,9 @@ class Session:
         Simulated sensor's link.
     sim_rate : float
         Simulated seconds per wall second.
-    scene : str, optional
-        Simulated scene (built-in name or TOML; default ``room``).
+    scene : Scene or str, optional
+        Simulated scene (a :class:`~nodlidar.sim.scene.Scene`, a built-in name or a TOML file;
+        default ``room``).
     noise : bool
         Simulated range noise.
     sim_perturbations : dict of str -> Perturbation, optional
@@ -110,7 +114,7 @@ class Session:
 
     def __init__(self, design: str | Path | None = None, *, port: str | None = None,
                  servo_port: str | None = None, calibration: str | Path | None = None,
-                 transport: str = "pty", sim_rate: float = 1.0, scene: str | None = None,
+                 transport: str = "pty", sim_rate: float = 1.0, scene: Scene | str | None = None,
                  noise: bool = True, seed: int = 0, lidar_timeout_s: float = 1.0,
                  sim_perturbations=None, plausibility: bool = False,
                  log: Callable[[str], None] | None = None):

@@ -111,7 +111,7 @@ class SimulatedSensor:
         self.clock = SimClock(rate)
         self.dxl = DxlEmulator(self.clock)
         self.scip = ScipEmulator(design.lidar, self.clock, self.range_source, faults=faults,
-                                 **({"scip1": True} if scip1 else {}))
+                                 scip1=scip1)
         self.lidar_url: str | None = None
         self.servo_url: str | None = None
         self._truth: OrderedDict[int, ScanTruth] = OrderedDict()
