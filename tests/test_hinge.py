@@ -239,3 +239,33 @@ def test_lift_axis_refuses_bad_values():
                            ("lift_rad", 0.0, "lift_rad"), ("point_m", (0.0, np.nan, 0.0), "point_m")):
         with pytest.raises(ParameterError, match=name):
             LiftAxis(**{**good, key: bad})
+
+
+def test_cad_carrier_conforms_to_the_lift_axis(design):
+    """The CAD's hinge is the lift axis (HingeAxis = LiftAxis in mm), every plan polygon of
+    the carrier (back plate, end stops, skirt) lies on or behind it - the end stops' front
+    corners that stood up to 0.35 mm lidar-ward of it on the paper build are clipped - and
+    the lifted carrier (each polygon's prism from the hinge tube's bottom to its top)
+    stays below the beam band."""
+    from nodlidar.cad.mounts import HingeAxis, lift_transform, side_layouts
+    from nodlidar.cad.params import MountParams
+
+    P = MountParams()
+    ms = design.spec.mirror
+    hz = ms.hinge_z_m * 1000
+    z_bot, z_min, z_max = hz - P.hinge_boss_radius_mm, -ms.glass_height_m * 500, ms.glass_height_m * 500
+    axes = side_lift_axes(design)
+    clipped = 0
+    for side, lay in side_layouts(design, P).items():
+        assert lay.axis == HingeAxis.from_lift_axis(axes[side])
+        a0, w = np.asarray(lay.axis.point_mm)[:2], np.asarray(lay.axis.outward)[:2]
+        prisms = ([(q, z_max) for q in lay.back_polygons]
+                  + [(q, z_min + P.end_stop_height_mm) for q in lay.stop_polygons]
+                  + [(lay.skirt_polygon, z_min)])
+        R, t = lift_transform(lay.axis, "lifted")
+        for q, top in prisms:
+            assert ((q - a0) @ w).min() > -1e-9, side
+            pts = np.vstack([np.c_[q, np.full(len(q), z)] for z in (z_bot, top)])
+            assert (pts @ R.T + t)[:, 2].max() < -P.beam_band_mm, side
+        clipped += sum(len(q) > 4 for q in lay.stop_polygons)
+    assert clipped > 0  # the clip did something on these builds (else it is untested)

@@ -129,7 +129,8 @@ class HingeAxis:
     @classmethod
     def from_lift_axis(cls, axis: LiftAxis) -> HingeAxis:
         """The CAD's view (mm) of the side's lift axis (:func:`nodlidar.hinge.side_lift_axes`)."""
-        return cls(side=axis.side, point_mm=tuple(map(float, mm_from_m(axis.point_m))),
+        x, y, z = (float(v) for v in mm_from_m(axis.point_m))
+        return cls(side=axis.side, point_mm=(x, y, z),
                    direction=axis.direction, outward=axis.outward, lift_rad=axis.lift_rad)
 
     def to_dict(self) -> dict[str, Any]:
@@ -206,7 +207,7 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
     from scipy.spatial import ConvexHull
 
     _check_vertical(design)
-    t = mm_from_m(design.spec.mirror.glass_thickness_m)
+    t = float(mm_from_m(design.spec.mirror.glass_thickness_m))
     w = params.wall_mm
     gap = params.pocket_clearance_mm / 2          # length play at each end of a pocket
     half_h = float(mm_from_m(design.spec.mirror.glass_height_m)) / 2
@@ -257,7 +258,7 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
                 n = normals[j]
                 inner += [los[j] - t * n, his[j] - t * n]
                 outer += [los[j] - (t + w) * n, his[j] - (t + w) * n]
-            polys = (np.array(inner + outer[::-1])[:, :2],)
+            polys: tuple[np.ndarray, ...] = (np.array(inner + outer[::-1])[:, :2],)
             free = [(0, "outer"), (len(ms) - 1, "inner")]
         else:
             polys = tuple(np.array([lo - t * n, hi - t * n, hi - (t + w) * n,

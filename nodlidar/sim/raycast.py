@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import ParameterError
 from ..geometry import MirrorPatch, Perturbation, reflect, rotate_about_axis, rotate_about_line
 from ..hinge import LiftAxis, lift_fraction, lifted_patch, side_lift_axes
 from ..lidar import LidarModel
@@ -59,6 +60,8 @@ def measure(true_ranges_m: np.ndarray, model: LidarModel, rng: np.random.Generat
     r = np.asarray(true_ranges_m, dtype=float)
     r = np.where(np.isfinite(r), r, np.nan)
     if noise:
+        if rng is None:
+            raise ParameterError("rng", rng, "a numpy Generator when noise=True")
         sig = model.range_sigma_m(np.nan_to_num(r))
         r = r + rng.standard_normal(r.shape) * sig
     return np.round(r * 1000.0) / 1000.0
@@ -235,7 +238,7 @@ class SceneSimulator:
         if parts:
             meshes = [m for _, m in parts]
             self._face_part = np.concatenate([np.full(len(m.faces), i) for i, m in enumerate(meshes)])
-            self._static = _MeshCaster(trimesh.util.concatenate(meshes))
+            self._static: _MeshCaster | None = _MeshCaster(trimesh.util.concatenate(meshes))
         else:
             self._face_part = np.zeros(0, dtype=int)
             self._static = None
@@ -348,15 +351,16 @@ class SceneSimulator:
         """:meth:`head_rays`, memoised for whole scans with a constant lift state (the usual
         case: the head-frame paths then do not change from scan to scan). ``whole``: the
         caller knows ``steps`` are all steps (None: compare)."""
+        key: tuple[float, float] | None
         if isinstance(lift_left, int | float) and isinstance(lift_right, int | float):
-            constant, key = True, (float(lift_left), float(lift_right))
+            key = (float(lift_left), float(lift_right))
         else:
             fl, fr = np.asarray(lift_left, dtype=float), np.asarray(lift_right, dtype=float)
             constant = np.ptp(fl) == 0 and np.ptp(fr) == 0
             key = (float(fl.flat[0]), float(fr.flat[0])) if constant else None
         if whole is None:
-            whole = np.array_equal(steps, self.lidar.steps)
-        if not (whole and constant):
+            whole = bool(np.array_equal(steps, self.lidar.steps))
+        if not whole or key is None:
             return self.head_rays(steps, lift_left, lift_right)
         hit = self._head_cache.get(key)
         if hit is None:
