@@ -24,6 +24,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from nodlidar.cli import main
+from nodlidar.hinge import side_lift_axes
 from nodlidar.lidar import lidar_model
 from nodlidar.paper import PAPER_DESIGN
 from nodlidar.runtime import ros
@@ -209,12 +210,22 @@ def test_tf_chain_puts_direct_laserscan_beams_on_the_cloud(recording):
 def _rpy_matrix(rpy: str) -> np.ndarray:
     """URDF rpy: roll about X, then pitch about Y, then yaw about Z (fixed axes)."""
     r, p, y = (float(v) for v in rpy.split())
-    return _rz(y) @ ros.rot_y(p) @ ros.rot_x(r)
+    return _rz(y) @ _ry(p) @ _rx(r)
 
 
 def _rz(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _ry(a: float) -> np.ndarray:  # written out here: the test reads URDF on its own
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _rx(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 @pytest.mark.slow
@@ -237,20 +248,34 @@ def test_urdf_matches_tf_and_design(recording):
     assert nod.get("type") == "revolute" and nod.find("axis").get("xyz") == "0 1 0"
     design, perts, _ = design_from_header(contents.header)
     thick = design.spec.mirror.glass_thickness_m
+    axes = side_lift_axes(design)
     for m in design.patches(perts):
         j = joints[f"mirror_{m.name}"]
         assert j.get("type") == "revolute" and j.find("axis").get("xyz") == "1 0 0"
+        ax = axes[design.mirror(m.name).side]
+        lim = j.find("limit")
+        assert_allclose([float(lim.get("lower")), float(lim.get("upper"))],
+                        [0.0, design.spec.mirror.lift_angle_rad], atol=1e-11)
         o = j.find("origin")
         R = _rpy_matrix(o.get("rpy"))
         t = np.array([float(v) for v in o.get("xyz").split()])
-        # joint x = the hinge axis direction (along), z = up; origin on the hinge line
-        assert_allclose(R[:, 0], m.along_, atol=1e-9)
-        assert_allclose(R[:, 2], m.up_, atol=1e-9)
-        off = t - (m.origin_ + m.hinge_z * m.up_)
-        assert_allclose(off - (off @ m.along_) * m.along_, 0, atol=1e-9)
-        box = root.find(f"link[@name='mirror_{m.name}']/visual/geometry/box").get("size")
-        assert_allclose([float(v) for v in box.split()],
-                        [m.s_max - m.s_min, thick, m.z_max - m.z_min], rtol=1e-8)
+        # joint x = the side's lift axis, turned so that the lift is positive; z = +z;
+        # origin on the axis (the one hinge model, nodlidar.hinge)
+        assert_allclose(R[:, 0], np.sign(ax.lift_rad) * ax.direction_, atol=1e-9)
+        assert_allclose(R[:, 2], [0.0, 0.0, 1.0], atol=1e-9)
+        off = t - ax.point_
+        assert_allclose(off - (off @ ax.direction_) * ax.direction_, 0, atol=1e-9)
+        vis = root.find(f"link[@name='mirror_{m.name}']/visual")
+        box = vis.find("geometry/box").get("size")
+        size = [float(v) for v in box.split()]
+        assert_allclose(size, [m.s_max - m.s_min, thick, m.z_max - m.z_min], rtol=1e-8)
+        # the box drawn in the joint frame is the (as built) glass: its front face's
+        # corners are the patch's corners (1e-8 m: the URDF prints 9-12 digits)
+        Rv = _rpy_matrix(vis.find("origin").get("rpy"))
+        tv = np.array([float(v) for v in vis.find("origin").get("xyz").split()])
+        front = np.array([[sx * size[0] / 2, -size[1] / 2, sz * size[2] / 2]
+                          for sx, sz in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+        assert_allclose((front @ Rv.T + tv) @ R.T + t, m.corners(), atol=1e-8)
         # at the deployed angle (all sampled angles are deployed here) /tf has this pose
         _, par, tr = dynamic[f"mirror_{m.name}"][0]
         assert par == ros.LASER_FRAME
@@ -332,34 +357,42 @@ def test_format1_sqlite3_bag_still_replays(tmp_path):
     assert j["format"] == 1 and j["scans"] == 4 and j["points"] > 1000
 
 
-def test_mirror_joint_tf_is_the_lift_rotation_about_the_hinge():
+def test_mirror_joint_tf_is_the_lift_rotation_about_the_side_axis():
     """/tf of a mirror at a lift-servo angle = the rest pose turned about the joint's x
-    axis; checked against MirrorPatch.rotated_about_hinge (geometry.py, the one place
-    mirror rotations live) at deployed, half-way and lifted."""
+    axis; the glass it carries is where nodlidar.hinge.lifted_patch puts it (deployed,
+    half way, lifted) and, lifted, where the CAD's carrier puts it
+    (cad.mounts.mirror_face_poses, mm) - one hinge for every layer."""
+    from nodlidar.cad.mounts import mirror_face_poses
+    from nodlidar.hinge import lifted_patch
     from nodlidar.runtime.actuators import MirrorLiftProfile
     from nodlidar.solver import solve
     from nodlidar.spec import load_design
 
     design = solve(load_design(PAPER_DESIGN))
+    axes = side_lift_axes(design)
+    cad = mirror_face_poses(design)
     prof = MirrorLiftProfile(deployed_rad=0.2, lifted_rad=1.7)
     hz, lift = design.spec.mirror.hinge_z_m, design.spec.mirror.lift_angle_rad
-    for (name, R0, t0), m in zip(ros.mirror_joint_frames(design.patches()), design.patches()):
+    patches = design.patches()
+    for (name, R0, t0), m in zip(ros.mirror_joint_frames(patches, design), patches,
+                                 strict=True):
+        ax = axes[design.mirror(name).side]
+        corners_joint = (m.corners() - t0) @ R0   # rest pose: head -> joint frame
         for servo, frac in ((0.2, 0.0), (0.95, 0.5), (1.7, 1.0)):
             a = float(ros.mirror_joint_angle(servo, prof, hz, lift))
-            # conventions: lifted = -sign(hinge_z) * lift_angle about the hinge
-            assert_allclose(a, -np.sign(hz) * lift * frac, atol=1e-12)
+            assert_allclose(a, lift * frac, atol=1e-12)
             q = ros.quat_mul(ros.quaternion(R0), ros.quat_axis(0, a))
             x, y, z, w = q
             R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                           [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                           [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-            moved = m.rotated_about_hinge(a)
-            # the glass face in the joint frame (y = 0 plane) maps onto the moved patch
-            corner = np.array([m.s_max, 0.0, m.z_max - m.hinge_z])
-            p_tf = R @ corner + t0
-            p_geo = moved.origin_ + m.s_max * moved.along_ + m.z_max * moved.up_
-            assert_allclose(p_tf, p_geo, atol=1e-12), name
-            assert_allclose(R[:, 1], -moved.normal_, atol=1e-12)  # +y away from the lidar
+            p_tf = corners_joint @ R.T + t0
+            assert_allclose(p_tf, lifted_patch(m, ax, frac).corners(), atol=1e-12,
+                            err_msg=name)
+            if frac == 1.0:
+                # 1e-9 mm: the same rotation by two routes (matrix vs quaternion)
+                assert_allclose(p_tf * 1000, cad[name]["lifted"]["corners_mm"], atol=1e-9,
+                                err_msg=name)
 
 
 def test_cdr_template_bytes_equal_the_typestore():

@@ -241,7 +241,7 @@ class BagRecorder:
                 m = ros.tf_message(ts, [(t_open, *x) for x in st])
                 w.write(self._c_tf_static, t_open, ts.serialize_cdr(m, "tf2_msgs/msg/TFMessage"))
                 # mirror joints: rest pose (quaternion) and the lift rotation per servo angle
-                frames = ros.mirror_joint_frames(self._patches)
+                frames = ros.mirror_joint_frames(self._patches, self._design)
                 side = {m.name: ("mirror_left" if m.side == "L" else "mirror_right")
                         for m in self._design.mirrors}
                 self._mirror_frames = {

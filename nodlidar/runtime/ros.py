@@ -14,11 +14,14 @@ Frames (docs/conventions.md; the names are what ROS tools see):
     in ``laser`` is right for the direct beams; reflected beams are only right in the
     PointCloud2.
 ``mirror_<name>``
-    One per mirror, on a revolute joint about its hinge axis (the line
-    ``origin + hinge_z*up + s*along``, right hand about ``along``): origin on the hinge
-    line, x = ``along``, z = ``up``. The joint angle is 0 deployed and
-    ``-sign(hinge_z) * lift_angle`` lifted (docs/conventions.md, "Mirror lift"); ``/tf``
-    carries it at every lift-servo sample.
+    One per mirror, on a revolute joint about its side's lift axis
+    (:func:`nodlidar.hinge.side_lift_axes`, the one hinge model: all mirrors of a side
+    turn about the same line; docs/conventions.md, "Mirror lift"): origin on the axis
+    abreast of the glass centre, x = the axis direction about which the lift is a
+    positive rotation (``LiftAxis.lift_direction``), z = +z (the axis is horizontal). The
+    joint angle is 0 deployed and ``mirror.lift_angle_rad`` lifted; ``/tf`` carries it
+    at every lift-servo sample. The glass is drawn in the joint frame where the (as
+    built) patch is.
 
 Transforms are ``parent -> child`` as ROS has them: the child's pose in the parent, i.e.
 ``p_parent = R p_child + t`` (the ``A2B`` naming of docs/conventions.md with A = parent).
@@ -32,6 +35,10 @@ from typing import Any
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
+
+# rot_y/rot_x: geometry's (the one rotation vocabulary), re-exported for callers here
+from ..geometry import rot_x, rot_y
+from ..hinge import side_lift_axes
 
 __all__ = ["BASE_FRAME", "HEAD_FRAME", "LASER_FRAME", "mirror_frame", "POINTFIELD_TYPES",
            "pointcloud2", "pointcloud2_array", "stamp", "quaternion", "quat_axis", "quat_mul",
@@ -56,16 +63,6 @@ def stamp(ts, ns: int):
     """builtin_interfaces/Time of ``ns`` [ns since the epoch]."""
     return ts.types["builtin_interfaces/msg/Time"](sec=int(ns) // 1_000_000_000,
                                                     nanosec=int(ns) % 1_000_000_000)
-
-
-def rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 def quaternion(R) -> tuple[float, float, float, float]:
@@ -128,24 +125,40 @@ def nod_transform(nod_rad: float, pivot_m: Sequence[float] | np.ndarray) -> tupl
     return rot_y(nod_rad), np.asarray(pivot_m, dtype=float)
 
 
-def mirror_joint_frames(patches) -> list[tuple[str, np.ndarray, np.ndarray]]:
+def mirror_joint_frames(patches, design) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """``laser -> mirror_<name>`` at joint angle 0 for each :class:`MirrorPatch`:
-    (name, R (3, 3), t (3,) [m]); columns of R are along, up x along, up."""
+    (name, R (3, 3), t (3,) [m]).
+
+    The joint turns about the patch's side's lift axis (``design``'s
+    :func:`~nodlidar.hinge.side_lift_axes`, from its nominal mirrors: the printed
+    carrier's hinge): columns of R are ``LiftAxis.lift_direction`` (the lift is a
+    positive rotation about it), ``z x`` that, and +z; ``t`` is the point of the axis
+    nearest the glass centre. ``patches`` may be as built (perturbed); their names pick
+    the side.
+    """
+    axes = side_lift_axes(design)
+    side_of = {m.name: m.side for m in design.mirrors}
+    ez = np.array([0.0, 0.0, 1.0])
     out = []
     for m in patches:
-        along, up = m.along_, m.up_
-        R = np.column_stack([along, np.cross(up, along), up])
-        out.append((m.name, R, m.origin_ + m.hinge_z * up))
+        ax = axes[side_of[m.name]]
+        x = ax.lift_direction
+        R = np.column_stack([x, np.cross(ez, x), ez])
+        centre = m.point((m.s_min + m.s_max) / 2, (m.z_min + m.z_max) / 2)
+        out.append((m.name, R, ax.nearest_point(centre)))
     return out
 
 
 def mirror_joint_angle(servo_rad, profile, hinge_z_m: float, lift_angle_rad: float) -> np.ndarray:
     """Mirror joint angle [rad] (0 deployed) from lift-servo angles [rad]: the fraction of
-    the way from ``profile.deployed_rad`` to ``profile.lifted_rad`` times the lift
-    rotation ``-sign(hinge_z) * lift_angle``."""
+    the way from ``profile.deployed_rad`` to ``profile.lifted_rad`` (not clipped: the
+    carrier turns with the horn) times ``lift_angle_rad``, a positive rotation about the
+    joint's x axis (:func:`mirror_joint_frames`). ``hinge_z_m`` is not needed any more
+    (the joint axis is oriented so that the lift is positive for either hinge height);
+    it is kept for callers."""
     frac = (np.asarray(servo_rad, float) - profile.deployed_rad) / (
         profile.lifted_rad - profile.deployed_rad)
-    return -math.copysign(1.0, hinge_z_m) * lift_angle_rad * frac
+    return abs(lift_angle_rad) * frac
 
 
 def static_transforms(pivot_m: Sequence[float] | np.ndarray) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
@@ -183,14 +196,14 @@ def _origin(R: np.ndarray, t: np.ndarray) -> str:
 def urdf(design, patches=None, *, name: str | None = None) -> str:
     """The head as URDF: ``nodlidar_base``, the nod joint (revolute about y through the
     pivot, the design's pitch limits), ``laser`` and one revolute joint per mirror about
-    its hinge axis with the glass as a box (length x thickness x height from the solved
-    patches; ``patches`` default: the design's nominal ones).
+    its side's lift axis (:func:`mirror_joint_frames`; limits 0 .. ``lift_angle_rad``)
+    with the glass as a box (length x thickness x height from the solved patches, where
+    the patch is; ``patches`` default: the design's nominal ones).
     """
     spec = design.spec
     patches = list(patches if patches is not None else design.patches())
     pivot = np.asarray(spec.nod.pivot_m, float)
-    lift = spec.mirror.lift_angle_rad
-    lo, hi = sorted((0.0, -math.copysign(1.0, spec.mirror.hinge_z_m) * lift))
+    lo, hi = 0.0, abs(spec.mirror.lift_angle_rad)
     thick = spec.mirror.glass_thickness_m
     robot = name or f"nodlidar_{spec.name}"
     x = [f"<robot name={quoteattr(robot)}>",
@@ -209,17 +222,18 @@ def urdf(design, patches=None, *, name: str | None = None) -> str:
          f'  <link name="{LASER_FRAME}">\n    <visual>\n      '
          f'{_origin(np.eye(3), np.array([0.0, 0.0, -0.035]))}\n      <geometry><box size="0.05 '
          '0.05 0.07"/></geometry>\n      <material name="lidar"/>\n    </visual>\n  </link>']
-    for (mname, R, t), m in zip(mirror_joint_frames(patches), patches):
-        # glass centre in the joint frame: along x, behind the reflecting face (+y is
-        # away from the lidar), z measured from the hinge
-        c = np.array([(m.s_min + m.s_max) / 2, thick / 2, (m.z_min + m.z_max) / 2 - m.hinge_z])
+    for (mname, R, t), m in zip(mirror_joint_frames(patches, design), patches):
+        # the glass box in the joint frame: its centre (behind the reflecting face by half
+        # the thickness) and its axes (along, away from the lidar, up), where the patch is
+        c_head = m.point((m.s_min + m.s_max) / 2, (m.z_min + m.z_max) / 2) - thick / 2 * m.normal_
+        box = np.column_stack([m.along_, -m.normal_, m.up_])
         size = (m.s_max - m.s_min, thick, m.z_max - m.z_min)
         frame = mirror_frame(mname)
         x += [f'  <joint name="{frame}" type="revolute">\n    <parent link="{LASER_FRAME}"/>'
               f'\n    <child link="{frame}"/>\n    {_origin(R, t)}\n    <axis xyz="1 0 0"/>'
               f'\n    <limit lower="{lo:.12g}" upper="{hi:.12g}" effort="1" velocity="1"/>'
               '\n  </joint>',
-              f'  <link name="{frame}">\n    <visual>\n      {_origin(np.eye(3), c)}\n      '
+              f'  <link name="{frame}">\n    <visual>\n      {_origin(R.T @ box, R.T @ (c_head - t))}\n      '
               f'<geometry><box size="{size[0]:.9g} {size[1]:.9g} {size[2]:.9g}"/></geometry>'
               '\n      <material name="glass"/>\n    </visual>\n  </link>']
     x.append("</robot>")
