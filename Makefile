@@ -39,8 +39,10 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	MPLBACKEND=Agg $(PY) benchmarks/run.py --repeat 3 --json out/bench.json
 
+# ruff, then the type check of the package (mypy; settings in pyproject.toml [tool.mypy])
 lint: $(STAMP)
 	$(VENV)/bin/ruff check nodlidar tests benchmarks notebooks
+	$(PY) -m mypy
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
