@@ -263,9 +263,12 @@ class PoseTrack:
         i = np.clip(np.searchsorted(ts, tq, side="right") - 1, 0, ts.size - 2)
         f = (tq - ts[i]) / (ts[i + 1] - ts[i])
         k, th = self._axis_angle(f[:, None] * w[i])
-        # rows of rel^T = the unit vectors e_j turned about each point's own axis
-        rel_T = rotate_about_axis(np.eye(3)[None], k[:, None, :], th[:, None])  # (n, 3, 3)
-        out[:, :3, :3] = R[i] @ rel_T.transpose(0, 2, 1)
+        # R_i exp(th [k]) = exp(th [R_i k]) R_i: each column of R_i turned about the world
+        # axis R_i k (no batched 3x3 products); rows of the (n, 3, 3) stack = the columns
+        Ri = R[i]
+        k_world = Ri[:, :, 0] * k[:, :1] + Ri[:, :, 1] * k[:, 1:2] + Ri[:, :, 2] * k[:, 2:]
+        cols = rotate_about_axis(Ri.transpose(0, 2, 1), k_world[:, None, :], th[:, None])
+        out[:, :3, :3] = cols.transpose(0, 2, 1)
         for j in range(3):  # three columns, not a per-point loop
             out[:, j, 3] = np.interp(tq, ts, T[:, j, 3])
         return out
