@@ -87,20 +87,26 @@ def check_transform(T: Any, name: str, *, stack: bool = False) -> np.ndarray:
     if bad.any():
         i = int(np.argmax(bad))
         raise ParameterError(where(i), _brief(S[i]), "finite numbers")
-    bad = np.max(np.abs(S[:, 3] - [0.0, 0.0, 0.0, 1.0]), axis=1) > tol
+    # component-major copies (a few contiguous (k,) vectors): a million poses (a
+    # callable's, one per point) are checked in a fraction of a second
+    last = np.ascontiguousarray(S[:, 3].T)  # (4, k)
+    bad = np.max(np.abs(last - np.array([[0.0], [0.0], [0.0], [1.0]])), axis=0) > tol
     if bad.any():
         i = int(np.argmax(bad))
         raise ParameterError(f"{where(i)}[3]", _brief(S[i, 3]), "[0, 0, 0, 1] (a homogeneous "
                                                                "transform's last row)")
     R = S[:, :3, :3]
-    err = np.max(np.abs(np.einsum("kji,kjl->kil", R, R) - np.eye(3)), axis=(1, 2))
+    C = np.ascontiguousarray(R.transpose(2, 1, 0))  # C[a, j] = component j of column a
+    # R^T R - I by the columns' dot products, det R by their triple product
+    G = np.einsum("ajk,bjk->abk", C, C)  # (3, 3, k), contiguous in k
+    err = np.max(np.abs(G - np.eye(3)[:, :, None]), axis=(0, 1))
     bad = err > tol
     if bad.any():
         i = int(np.argmax(bad))
         raise ParameterError(f"{where(i)}[:3, :3]", _brief(R[i]),
                              f"a rotation: orthonormal, max |R^T R - I| <= {tol:g} "
                              f"(this one {err[i]:.3g})")
-    det = np.linalg.det(R)
+    det = np.sum(C[0] * np.cross(C[1], C[2], axis=0), axis=0)
     bad = np.abs(det - 1.0) > tol
     if bad.any():
         i = int(np.argmax(bad))
