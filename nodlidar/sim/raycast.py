@@ -38,7 +38,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from ..geometry import MirrorPatch, Perturbation, reflect, rotate_about_axis, rotate_about_line
+from ..geometry import (
+    MirrorPatch,
+    Perturbation,
+    directions_from_bearings,
+    pitch_about_pivot,
+    reflect,
+    rotate_about_axis,
+    rotate_about_line,
+)
 from ..hinge import LiftAxis, lift_fraction, lifted_patch, side_lift_axes
 from ..lidar import LidarModel
 from .scene import HIT_NONE, HIT_STATIC, Scene, builtin_scene
@@ -230,7 +238,7 @@ class SceneSimulator:
         self.pivot = np.asarray(design.spec.nod.pivot_m, dtype=float)
         self.max_bounces = int(max_bounces)
         th = self.lidar.bearing_from_step(self.lidar.steps)
-        self._dir0 = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
+        self._dir0 = directions_from_bearings(th)
         import trimesh
 
         parts = self.scene.static_parts()
@@ -380,13 +388,13 @@ class SceneSimulator:
     def to_world(self, p_head: np.ndarray, d_head: np.ndarray, nod_rad: np.ndarray,
                  t_s: np.ndarray, _rel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Head-frame points/directions at per-row nod [rad] and time [s] -> world frame."""
-        c, s = np.cos(nod_rad), np.sin(nod_rad)
-
-        def ry(v):  # R_y(nod) per row: positive pitch tips +x down (conventions.md)
-            return np.stack([c * v[:, 0] + s * v[:, 2], v[:, 1], -s * v[:, 0] + c * v[:, 2]], -1)
-
-        p_sensor = ry(p_head - self.pivot if _rel is None else _rel) + self.pivot
-        d_sensor = ry(d_head)
+        # the nod: R_y(nod) per row about the pivot (conventions.md); ``_rel`` = the cached
+        # p_head - pivot
+        if _rel is None:
+            p_sensor = pitch_about_pivot(p_head, nod_rad, self.pivot)
+        else:
+            p_sensor = pitch_about_pivot(_rel, nod_rad) + self.pivot
+        d_sensor = pitch_about_pivot(d_head, nod_rad)
         pose = self.scene.sensor
         return pose.to_world(p_sensor, t_s), d_sensor @ pose.rotation.T
 
