@@ -193,6 +193,9 @@ def lift_fraction(servo_rad: np.ndarray | float, deployed_rad: float = 0.0,
                   lifted_rad: float = math.pi / 2) -> np.ndarray:
     """How far a side is lifted (0 deployed .. 1 lifted, clipped) at lift-servo angle(s)
     [rad], linear between the servo's ``deployed_rad`` and ``lifted_rad``."""
+    require(math.isfinite(deployed_rad) and math.isfinite(lifted_rad)
+            and lifted_rad != deployed_rad, "lifted_rad", lifted_rad,
+            f"a finite servo angle [rad] other than deployed_rad = {deployed_rad!r}")
     a = np.asarray(servo_rad, dtype=float)
     return np.clip((a - deployed_rad) / (lifted_rad - deployed_rad), 0.0, 1.0)
 
