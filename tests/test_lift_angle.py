@@ -5,7 +5,10 @@ lifted at that servo angle."""
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -230,3 +233,21 @@ def test_session_capture_lifted_at_the_design_angle(lift_toml, designs):
     assert np.all(cloud.mirror == DIRECT)
     for tr in truths:
         assert tr is not None and np.all(tr.mirror == DIRECT)
+
+
+def test_emulate_reports_the_design_lift_angles(lift_toml, tmp_path):
+    """`nodlidar emulate --json` names each lift servo's angles: the design's, +-1.2 rad."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "nodlidar.cli", "emulate", "--design", str(lift_toml), "--scene",
+         "wall", "--no-noise", "--tcp", "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    try:
+        info = json.loads(proc.stdout.readline())
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0 and "Traceback" not in err
+    assert info["servos"] == {"nod": 1, "mirror_left": 2, "mirror_right": 3}
+    assert info["lift"] == {"mirror_left": {"deployed_rad": 0.0, "lifted_rad": -LIFT},
+                            "mirror_right": {"deployed_rad": 0.0, "lifted_rad": LIFT}}

@@ -89,7 +89,10 @@ def run(args) -> int:
                     "scene": scene.name, "perturbed": bool(perturbations),
                     "noise": not args.no_noise, "seed": args.seed, "rate": args.rate,
                     "scip": "1.1" if args.scip1 else "2.0",
-                    "servos": {"nod": 1, "mirror_left": 2, "mirror_right": 3}}))
+                    "servos": {"nod": 1, "mirror_left": 2, "mirror_right": 3},
+                    # each lift servo's deployed / lifted angle [rad], from the design
+                    "lift": {j: {"deployed_rad": p.deployed_rad, "lifted_rad": p.lifted_rad}
+                             for j, p in sim.lift.items()}}))
             else:
                 print(f"simulated sensor: design {design.spec.name}, scene {scene.name!r}"
                       f" ({scene.description or 'custom'}), mirrors "
