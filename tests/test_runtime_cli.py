@@ -158,7 +158,12 @@ def test_record_replay_same_cloud(capsys, tmp_path):
     with Reader(bag) as r:  # a closed bag: metadata.yaml present, counts right
         counts = {c.topic: c.msgcount for c in r.connections}
     assert counts["/scan"] == counts["/scan/raw"] == 25 and counts["/nodlidar/design"] == 1
-    assert counts["/joint_states"] > 100
+    # one JointState per servo sample, as many as the recorder wrote; how many the sampler
+    # reads in the capture's wall time depends on the machine's load (it was "> 100", which
+    # a loaded machine missed with 37); that they cover the scans is shown below by the
+    # replayed cloud (points need the nod at every beam's time)
+    n_samples = int(out.split(" scans and ")[1].split()[0])
+    assert counts["/joint_states"] == n_samples > 0
     code, out, err = run(capsys, "replay", str(bag), "--out", str(tmp_path / "replay.ply"))
     assert code == 0, err
     live, rep = read_cloud(tmp_path / "live.ply"), read_cloud(tmp_path / "replay.ply")
