@@ -11,9 +11,9 @@ A mirror is a flat rectangle in 3D (head frame)::
 ``origin`` is the mirror's anchor point (where its anchor beam hits it, in the scan plane
 for an unperturbed mirror), ``normal`` the unit normal on the reflecting side (towards the
 lidar), ``along`` the unit in-plane direction that stays horizontal for a vertical mirror,
-``up`` = ``normal x along``. The hinge axis (about which the lift motor turns the mirror,
-and about which the paper's tilt error Delta-beta acts) is the line ``origin + hinge_z*up +
-s*along``.
+``up`` = ``normal x along``. The mirror's own hinge line ``origin + hinge_z*up + s*along``
+is the axis of the paper's tilt error Delta-beta only; the lift motor turns all of a
+side's mirrors about the side's lift axis (:mod:`nodlidar.hinge`, docs/conventions.md).
 """
 
 from __future__ import annotations
@@ -90,11 +90,25 @@ class Tol:
         the housing) counts as blocking it [m]. Coarser than ``ahead_m``: the ray starts
         on a hit point computed by a ray-plane intersection, and a neighbour sharing that
         edge (a chained mirror's joint) must not block it by round-off.
+    angle_deg : float
+        Angles typed in degrees (a design file's window edges) closer than this to a
+        step's bearing are that bearing [deg]: covers the round-off of the conversion.
+    degenerate_rad : float
+        A construction angle this close to degenerate (a beam turned by 180 deg, a
+        triangle angle of 0) is refused as ill-conditioned [rad]. A design margin, far
+        coarser than round-off.
+    collinear_m2 : float
+        ``|(b - a) x (c - a)|`` (twice a triangle's area) below which three points count
+        as collinear: no plane through them [m^2]. An area, not a length: a 30 um x 30 um
+        triangle, far below a lidar's millimetre range noise.
     """
 
     parallel: float = 1e-12
     ahead_m: float = 1e-12
     block_ahead_m: float = 1e-9
+    collinear_m2: float = 1e-9
+    angle_deg: float = 1e-9
+    degenerate_rad: float = 1e-6
     unit_norm: float = 1e-9
     rotation: float = 1e-6
     angle_rad: float = 1e-12

@@ -122,17 +122,15 @@ class LidarModel:
         return np.asarray(bearing, dtype=float) / self.angular_resolution + self.step_front
 
     def time_offset_from_step(self, step: np.ndarray | int) -> np.ndarray:
-        """Time of ``step`` after step ``step_min`` within one scan [s].
-
-        SCIP timestamps a scan at its step 0 (SPEC p.12); add
-        :attr:`first_step_offset_s` to refer to that instead.
-        """
-        return (np.asarray(step, dtype=float) - self.step_min) * self.step_period_s
+        """Time of ``step`` after step ``step_min`` within one scan [s]: the difference of
+        two :meth:`beam_time_s` (the one convention); prefer that."""
+        return self.beam_time_s(0.0, step) - self.first_step_offset_s
 
     @property
     def first_step_offset_s(self) -> float:
-        """Time from the SCIP timestamp (step 0) to the first valid step [s]."""
-        return self.step_min * self.step_period_s
+        """Time from the SCIP timestamp (step 0) to the first valid step [s]:
+        ``beam_time_s(0, step_min)``."""
+        return float(self.beam_time_s(0.0, self.step_min))
 
     def beam_time_s(self, scan_time_s: np.ndarray | float, step: np.ndarray | int) -> np.ndarray:
         """Time of each beam [s] given its scan's SCIP timestamp time (step 0) [s].

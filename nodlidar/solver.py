@@ -35,6 +35,7 @@ from .design import Design, MirrorSolution  # the solved-design types (re-export
 from .errors import InfeasibleDesignError, ParameterError
 from .geometry import (
     EZ,
+    TOL,
     MirrorPatch,
     arc_point,
     bearing_of,
@@ -89,7 +90,7 @@ def _steps_of(lidar: LidarModel, steps: tuple, deg: tuple, name: str) -> np.ndar
         lidar.check_step(np.array([lo, hi]), name + ".steps")
         return np.arange(lo, hi + 1)
     b = np.degrees(lidar.bearing_from_step(lidar.steps))
-    sel = lidar.steps[(b >= deg[0] - 1e-9) & (b <= deg[1] + 1e-9)]
+    sel = lidar.steps[(b >= deg[0] - TOL.angle_deg) & (b <= deg[1] + TOL.angle_deg)]
     if not len(sel):
         raise ParameterError(name + ".deg", list(deg), f"a range holding at least one step of "
                              f"{lidar.name} ({b[0]:.2f} .. {b[-1]:.2f} deg)")
@@ -234,7 +235,8 @@ def _bisector_normal(z: np.ndarray, m: np.ndarray) -> np.ndarray:
 def _anchor_oz(theta_z: float, theta_m: float, oa: float, D: float, name: str) -> float:
     """Range OZ of the anchor point from the paper's OA (triangle ZOM, Section III)."""
     moz = abs(float(wrap_angle(theta_z - theta_m)))
-    if moz >= np.pi - 1e-6 or abs(wrap_angle(theta_z - theta_m)) < abs(theta_z - theta_m) - 1e-9:
+    wrapped = abs(wrap_angle(theta_z - theta_m)) < abs(theta_z - theta_m) - TOL.angle_rad
+    if moz >= np.pi - TOL.degenerate_rad or wrapped:
         raise InfeasibleDesignError(
             f"mirror {name}: its anchor beam at {np.degrees(theta_z):.2f} deg would have to turn "
             f"by {abs(np.degrees(theta_z - theta_m)):.1f} deg to reach its target at "
@@ -243,7 +245,7 @@ def _anchor_oz(theta_z: float, theta_m: float, oa: float, D: float, name: str) -
             f"windows, or a front window nearer this side)")
     omz = np.arcsin(oa / D)
     ozm = np.pi - moz - omz
-    if ozm <= 1e-6:
+    if ozm <= TOL.degenerate_rad:
         raise InfeasibleDesignError(
             f"mirror {name}: no reflection turns its anchor beam onto its target "
             f"(angle OZM = {np.degrees(ozm):.3f} deg <= 0); reduce placement.standoff_m")

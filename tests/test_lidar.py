@@ -61,12 +61,15 @@ def test_noise_model_follows_the_spec():
 
 
 def test_beam_time_refers_to_step_zero():
-    # SCIP stamps a scan at step 0: a beam is step * 60/(rpm*ARES) later; the first valid
-    # step is first_step_offset_s after the stamp (two ways to the same number)
+    # SCIP stamps a scan at step 0: a beam is step * 60/(rpm*ARES) later, written out here
+    # from the URG-04LX's PP figures (600 rpm, ARES 1024: 0.1 s / 1024 a step); the older
+    # helpers are differences of beam_time_s and must say the same. 1e-15 s: a few ulp of 2 s.
     from nodlidar.lidar import lidar_model
 
     m = lidar_model("URG-04LX")
     steps = np.array([m.step_min, m.step_front, m.step_max])
-    np.testing.assert_allclose(m.beam_time_s(2.0, steps),
-                               2.0 + m.first_step_offset_s + m.time_offset_from_step(steps), atol=1e-15)
-    np.testing.assert_allclose(m.beam_time_s(0.0, m.step_max), m.step_max * 0.1 / 1024, rtol=1e-12)
+    np.testing.assert_allclose(m.beam_time_s(2.0, steps), 2.0 + steps * 0.1 / 1024, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(m.first_step_offset_s, 44 * 0.1 / 1024, rtol=1e-15)
+    # a difference of two times <= 0.07 s: a few ulp of 0.07 s (1.4e-17 s each)
+    np.testing.assert_allclose(m.time_offset_from_step(steps), (steps - 44) * 0.1 / 1024,
+                               rtol=0, atol=5e-17)

@@ -64,11 +64,13 @@ from .._light import MAX_SAMPLES  # defined without numpy: the CLI parser shows 
 from ..design import Design
 from ..errors import ParameterError, require
 from ..geometry import (
+    EZ,
     MirrorPatch,
     Perturbation,
     arc_point,
     bearing_of,
     directions_from_bearings,
+    incidence_angle,
     perturb_frames,
     ray_circle_exit,
     reflect,
@@ -938,7 +940,6 @@ def sensitivities(design: Design, D: float | None = None, h_rad: float = 1e-6,
     D = float(design.design_distance_m if D is None else D)
     lid = design.lidar
     fd_all, cf_all, steps = {}, {}, {}
-    ez = np.array([0.0, 0.0, 1.0])
     for m in design.mirrors:
         th = lid.bearing_from_step(m.steps)
         steps[m.name] = m.steps.copy()
@@ -969,7 +970,7 @@ def sensitivities(design: Design, D: float | None = None, h_rad: float = 1e-6,
         n_out = n if patch.origin_ @ n > 0 else -n
         u = directions_from_bearings(th)
         un = u @ n
-        theta_r = np.arccos(np.clip(np.abs(un), 0.0, 1.0))
+        theta_r = incidence_angle(u, n)
         oz = patch.standoff / np.cos(theta_r)
         oa = oz * np.sin(2 * theta_r)
         am = np.sqrt(D**2 - oa**2)
@@ -977,7 +978,7 @@ def sensitivities(design: Design, D: float | None = None, h_rad: float = 1e-6,
         db_doz = s * np.sin(2 * theta_r) / am
         db_dthr = s * (2 + 2 * oz * np.cos(2 * theta_r) / am)
         db_dd = db_doz / np.cos(theta_r)
-        dthr_dalpha = -np.sign(un) * (u @ np.cross(ez, n)) / np.sin(theta_r)
+        dthr_dalpha = -np.sign(un) * (u @ np.cross(EZ, n)) / np.sin(theta_r)
         db_dalpha = (db_dthr + db_doz * oz * np.tan(theta_r)) * dthr_dalpha
         cf = {"dalpha": db_dalpha, "dbeta": patch.hinge_z * db_dd, "dd": db_dd,
               "lidar_yaw": -db_dalpha, "lidar_pitch": np.full_like(th, np.nan),

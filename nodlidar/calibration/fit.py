@@ -91,7 +91,8 @@ from scipy.special import erf
 from ..beams import BeamModel
 from ..closed_form import eq4_8_point
 from ..errors import CalibrationError, require
-from ..geometry import Perturbation
+from ..geometry import BLOCKED, CLEAR, DIRECT, Perturbation, pitch_about_pivot
+from ..verify import verify
 from .walls import Plane, WallCapture, check_wall_orientations, fit_plane_msac
 
 __all__ = ["CalibrationConfig", "calibration_config", "ResidualStats", "MirrorFit",
@@ -389,7 +390,7 @@ def fit_planes(design, captures: list[WallCapture], config: CalibrationConfig,
         name = cap.name or f"capture {k}"
         bm = design.beam_model(mirrors_deployed=cap.mirrors_deployed)
         if direct is None or not cap.mirrors_deployed:
-            is_direct = bm.mirror_index(cap.steps) == -1
+            is_direct = bm.mirror_index(cap.steps) == DIRECT
         else:
             is_direct = np.asarray(direct)[cap.steps - lidar.step_min]
         sel = is_direct & np.isfinite(cap.ranges_m)
@@ -408,12 +409,11 @@ def fit_planes(design, captures: list[WallCapture], config: CalibrationConfig,
 
 def beam_map(design, perturbations: dict[str, Perturbation] | None) -> np.ndarray:
     """(n_steps,) int over the valid steps: the mirror each beam reaches with the mirrors
-    perturbed (``-1`` none; ``-2`` reflected but blocked on its way out), by the same trace
-    as the runtime assembly's (:func:`nodlidar.verify.verify`, first hit on the patches)."""
-    from ..verify import verify
-
+    perturbed (``DIRECT`` none; ``BLOCKED`` reflected but blocked on its way out, by
+    another mirror or the housing), by the same trace as the runtime assembly's
+    (:func:`nodlidar.verify.verify`, first hit on the patches)."""
     v = verify(design, perturbations or None)
-    return np.where((v.hit >= 0) & (v.blocker != -1), -2, v.hit)
+    return np.where((v.hit >= 0) & (v.blocker != CLEAR), BLOCKED, v.hit)
 
 
 class _MirrorProblem:
@@ -430,7 +430,7 @@ class _MirrorProblem:
         # a one-mirror beam map: the steps reaching this mirror (default: the design's) ->
         # index 0, everything else direct
         self.mirror_steps = self.sol.steps if mirror_steps is None else np.asarray(mirror_steps)
-        self.mos = np.full(lidar.n_steps, -1, dtype=int)
+        self.mos = np.full(lidar.n_steps, DIRECT, dtype=int)
         self.mos[self.mirror_steps - lidar.step_min] = 0
         self.pivot = np.asarray(design.spec.nod.pivot_m, dtype=float)
         if model == "paper":
@@ -489,9 +489,8 @@ class _MirrorProblem:
         p = eq4_8_point(self.ranges, self.theta, self.alpha, self.d, self.h,
                         self.sgn * x[0], x[1], x[2])
         # eq. 7 gives x = r sin(theta_a), y = r cos(theta_a): swap to the sensor's x/y
-        q = np.stack([p[:, 1], -self.sgn * p[:, 0], p[:, 2]], -1) - self.pivot
-        c, s = np.cos(self.nod), np.sin(self.nod)
-        return np.stack([c * q[:, 0] + s * q[:, 2], q[:, 1], -s * q[:, 0] + c * q[:, 2]], -1) + self.pivot
+        q = np.stack([p[:, 1], -self.sgn * p[:, 0], p[:, 2]], -1)
+        return pitch_about_pivot(q, self.nod, self.pivot)
 
 
 def _scaled_condition(J: np.ndarray) -> float:
@@ -603,7 +602,7 @@ class _Joint:
         self.nd = sum(len(s) for s, _, _ in direct)
         self.cap_rows = np.concatenate([np.full(len(s), k) for k, (s, _, _) in enumerate(direct)]
                                        + [probs[n].kidx for n in self.names]).astype(int)
-        self.mir_rows = np.concatenate([np.full(len(s), -1) for s, _, _ in direct]
+        self.mir_rows = np.concatenate([np.full(len(s), DIRECT) for s, _, _ in direct]
                                        + [np.full(len(probs[n].kidx), m)
                                           for m, n in enumerate(self.names)]).astype(int)
         self.r_meas = np.concatenate([r for _, r, _ in direct]
@@ -983,7 +982,7 @@ def calibrate(design, captures: list[WallCapture], *, model: str = "exact",
     out: dict[str, MirrorFit] = {}
     for rnd in range(int(config.rounds)):
         # beams direct in the design's map and in the current one give the planes
-        direct_ok = (design_map == -1) & (hit == -1)
+        direct_ok = (design_map == DIRECT) & (hit == DIRECT)
         fits = fit_planes(design, captures, config, direct=direct_ok, intrinsics=intr)
         check_wall_orientations([c.plane for c in fits], [c.name for c in fits],
                                 min_walls=int(config.min_walls),
@@ -994,7 +993,7 @@ def calibrate(design, captures: list[WallCapture], *, model: str = "exact",
         dcands = []
         for cap in captures:
             bm = design.beam_model(mirrors_deployed=cap.mirrors_deployed)
-            isd = (bm.mirror_index(cap.steps) == -1 if not cap.mirrors_deployed
+            isd = (bm.mirror_index(cap.steps) == DIRECT if not cap.mirrors_deployed
                    else direct_ok[cap.steps - lidar.step_min])
             sel = isd & np.isfinite(cap.ranges_m)
             dcands.append((cap.steps[sel], cap.ranges_m[sel], cap.nod_rad[sel]))

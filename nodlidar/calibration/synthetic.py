@@ -15,8 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..beams import BeamModel
 from ..errors import require
-from ..geometry import Perturbation
+from ..geometry import BLOCKED, DIRECT, Perturbation, directions_from_bearings
+from .fit import beam_map
 from .walls import WallCapture
 
 __all__ = ["WallPose", "DEFAULT_WALLS", "sweep_nod", "synthetic_capture", "synthetic_captures",
@@ -49,7 +51,7 @@ class WallPose:
     @property
     def normal(self) -> np.ndarray:
         """Outward unit normal (3,)."""
-        return np.array([np.cos(self.yaw_rad), np.sin(self.yaw_rad), 0.0])
+        return directions_from_bearings(float(self.yaw_rad))
 
     @property
     def point(self) -> np.ndarray:
@@ -68,7 +70,8 @@ DEFAULT_WALLS: tuple[WallPose, ...] = (
 def sweep_nod(design, n_scans: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Steps and per-beam nod angles of one nod sweep (min -> max), all valid steps per scan.
 
-    Each beam's nod is the ramp at its own time (scan start + the step's offset).
+    Each beam's nod is the ramp at its own time (:meth:`LidarModel.beam_time_s`), the ramp
+    starting at its minimum when the first valid beam of scan 0 is taken.
 
     Returns
     -------
@@ -79,7 +82,8 @@ def sweep_nod(design, n_scans: int | None = None) -> tuple[np.ndarray, np.ndarra
     if n_scans is None:
         n_scans = max(3, int(np.ceil(nod.sweep_period_s / lidar.scan_period_s)))
     t_scan = np.arange(n_scans) * lidar.scan_period_s
-    t = (t_scan[:, None] + lidar.time_offset_from_step(lidar.steps)[None, :]).ravel()
+    t = (lidar.beam_time_s(t_scan[:, None], lidar.steps[None, :])
+         - lidar.beam_time_s(0.0, lidar.step_min)).ravel()
     pitch = np.clip(nod.pitch_min_rad + t * nod.rate_rad_s, nod.pitch_min_rad, nod.pitch_max_rad)
     return np.tile(lidar.steps, n_scans), pitch
 
@@ -98,16 +102,15 @@ def synthetic_capture(design, wall: WallPose, perturbations: dict[str, Perturbat
     simulator and the runtime assembly do): a turned mirror folds beams of its neighbour's
     window; beams blocked on their way out are NaN.
     """
-    from ..beams import BeamModel
-    from .fit import beam_map
-
     rng = rng if rng is not None else np.random.default_rng(0)
     steps, nod = sweep_nod(design, n_scans)
     if mirrors_deployed:
         hit = beam_map(design, perturbations)
-        bm = BeamModel.build(design.lidar, design.patches(perturbations), np.maximum(hit, -1),
-                             design.spec.nod.pivot_m)
-        blocked = hit[steps - design.lidar.step_min] == -2
+        blocked_step = hit == BLOCKED
+        # a blocked beam is cast direct (it is NaN below whatever it meets)
+        bm = BeamModel.build(design.lidar, design.patches(perturbations),
+                             np.where(blocked_step, DIRECT, hit), design.spec.nod.pivot_m)
+        blocked = blocked_step[steps - design.lidar.step_min]
     else:
         bm = design.beam_model(perturbations, mirrors_deployed=False)
         blocked = np.zeros(steps.shape, bool)
@@ -165,7 +168,7 @@ def simulated_capture(design, wall: WallPose, perturbations: dict[str, Perturbat
     for k in range(n_scans):
         t_scan = k * lidar.scan_period_s
         # the nod ramp starts at the minimum when the first valid beam of scan 0 is taken
-        t = sim.beam_times(t_scan) - lidar.first_step_offset_s
+        t = sim.beam_times(t_scan) - lidar.beam_time_s(0.0, lidar.step_min)
         pitch = np.clip(nod.pitch_min_rad + t * nod.rate_rad_s, nod.pitch_min_rad, nod.pitch_max_rad)
         s = sim.scan(t_scan, pitch, noise=noise, rng=np.random.default_rng([seed, k]))
         steps.append(s.steps)

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import CalibrationError, ParameterError
+from ..geometry import TOL, incidence_angle
 
 __all__ = ["WallCapture", "Plane", "fit_plane", "fit_plane_msac", "check_wall_orientations",
            "save_capture", "load_capture"]
@@ -241,7 +242,7 @@ def fit_plane_msac(points: np.ndarray, sigma_m: np.ndarray, *, k_sigma: float = 
     a, b, c = q[tri[:, 0]], q[tri[:, 1]], q[tri[:, 2]]
     nrm = np.cross(b - a, c - a)
     ln = np.linalg.norm(nrm, axis=1)
-    good = ln > 1e-9
+    good = ln > TOL.collinear_m2
     nrm, a = nrm[good] / ln[good, None], a[good]
     if len(nrm) == 0:
         raise CalibrationError(f"{name}: the direct-beam points do not span a plane")
@@ -298,13 +299,14 @@ def check_wall_orientations(planes: list[Plane], names: list[str], *, min_walls:
                                f"{min_walls} captures of the wall at different orientations")
     reps: list[np.ndarray] = []
     for pl in planes:
-        if all(np.arccos(min(1.0, abs(float(pl.normal @ r)))) >= min_angle_rad for r in reps):
+        # the angle between two planes: a normal's incidence on the other plane
+        if all(incidence_angle(pl.normal, r) >= min_angle_rad for r in reps):
             reps.append(pl.normal)
     if len(reps) < min_walls:
         pairs = []
         for i in range(len(planes)):
             for j in range(i + 1, len(planes)):
-                a = np.degrees(np.arccos(min(1.0, abs(float(planes[i].normal @ planes[j].normal)))))
+                a = np.degrees(incidence_angle(planes[i].normal, planes[j].normal))
                 pairs.append(f"{names[i]}/{names[j]} {a:.1f} deg")
         raise CalibrationError(
             f"the walls are not mutually non-parallel: only {len(reps)} distinct orientation(s) "
