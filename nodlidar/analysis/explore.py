@@ -25,7 +25,7 @@ import csv
 import itertools
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -206,7 +206,8 @@ def _run_chunk(spec_dict: dict[str, Any], combos: list[dict[str, Any]]) -> list[
     return rows
 
 
-def pareto_front(rows: list[dict[str, Any]], objectives=OBJECTIVES) -> np.ndarray:
+def pareto_front(rows: list[dict[str, Any]],
+                 objectives: Sequence[tuple[str, int]] = OBJECTIVES) -> np.ndarray:
     """``(n,) bool``: feasible rows that no other feasible row dominates.
 
     A row dominates another if it is at least as good on every objective and better on

@@ -9,11 +9,15 @@ imported inside the functions, so importing this module is cheap.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 if TYPE_CHECKING:
+    from matplotlib.axes import Axes  # noqa: TID251 (types only, never imported at run time)
+    from matplotlib.figure import Figure  # noqa: TID251
+    from mpl_toolkits.mplot3d import Axes3D
+
     from .drift import DensityResult, DriftResult, InterleaveResult
     from .tolerance import SensitivityResult, ToleranceResult
 
@@ -90,7 +94,8 @@ def _range_colours(ranges):
     return [cmap(x) for x in np.linspace(0.0, 0.9, len(ranges))]
 
 
-def plot_bearing(result: DriftResult, mirrors: Sequence[str] | None = None, ax=None):
+def plot_bearing(result: DriftResult, mirrors: Sequence[str] | None = None,
+                 ax: Axes | Sequence[Axes] | None = None) -> Figure:
     """Actual bearing of each reflected beam on each arc, per mirror (paper Figs 6a/7a).
 
     x: the beam's step; y: bearing where it crosses the arc [deg]; one line per arc
@@ -113,7 +118,8 @@ def plot_bearing(result: DriftResult, mirrors: Sequence[str] | None = None, ax=N
     return fig
 
 
-def plot_separation(result: DriftResult, mirrors: Sequence[str] | None = None, ax=None):
+def plot_separation(result: DriftResult, mirrors: Sequence[str] | None = None,
+                    ax: Axes | Sequence[Axes] | None = None) -> Figure:
     """Angular separation of consecutive reflected beams, per mirror (paper Figs 6b/7b).
 
     y in native steps (1 = pi/512 on a URG-04LX); it tends to 1 as R grows.
@@ -135,7 +141,7 @@ def plot_separation(result: DriftResult, mirrors: Sequence[str] | None = None, a
     return fig
 
 
-def plot_drift_vs_range(result: DriftResult, ax=None):
+def plot_drift_vs_range(result: DriftResult, ax: Axes | None = None) -> Figure:
     """Bearing error against the interleave target vs arc radius, every mirror.
 
     Solid: largest |error| over the mirror's beams; dotted: RMS. Log-scaled range.
@@ -160,7 +166,8 @@ def plot_drift_vs_range(result: DriftResult, ax=None):
     return fig
 
 
-def plot_interleave(result: InterleaveResult, ax=None, ray_every: int = 12):
+def plot_interleave(result: InterleaveResult, ax: Axes | None = None,
+                    ray_every: int = 12) -> Figure:
     """Top view (paper Fig. 2b): where direct and reflected beams land on each arc.
 
     Every ``ray_every``-th beam of each group is drawn as its ray (origin -> mirror -> the
@@ -200,7 +207,7 @@ def plot_interleave(result: InterleaveResult, ax=None, ray_every: int = 12):
 
 
 def plot_interleave_strip(result: InterleaveResult, centre_deg: float = 0.0,
-                          width_deg: float = 4.0, ax=None):
+                          width_deg: float = 4.0, ax: Axes | None = None) -> Figure:
     """Close-up of the interleave: bearing (x) against arc radius (y) near ``centre_deg``.
 
     On the arc of radius D every third beam is direct and the reflected ones sit at a
@@ -233,7 +240,7 @@ def plot_interleave_strip(result: InterleaveResult, centre_deg: float = 0.0,
     return fig
 
 
-def plot_density(result: DensityResult, ax=None):
+def plot_density(result: DensityResult, ax: Axes | None = None) -> Figure:
     """Beams per degree across the front window on each arc, and with the mirrors lifted."""
     fig, a = _one(ax)
     c = np.degrees(result.bin_centres_rad)
@@ -259,8 +266,9 @@ def _range_index(result: ToleranceResult, range_m: float | None) -> int:
     return int(np.argmin(np.abs(r - range_m)))
 
 
-def plot_tolerance_hist(result: ToleranceResult, range_m: float | None = None, ax=None,
-                        metric: str = "bearing_error_max"):
+def plot_tolerance_hist(result: ToleranceResult, range_m: float | None = None,
+                        ax: Axes | None = None,
+                        metric: str = "bearing_error_max") -> Figure:
     """Histogram over sampled builds of a metric per mirror, at the range nearest ``range_m``.
 
     Metrics with a range axis: ``bearing_error_max`` (deg), ``bearing_error_mean`` (deg),
@@ -287,7 +295,7 @@ def plot_tolerance_hist(result: ToleranceResult, range_m: float | None = None, a
 
 
 def plot_tolerance_percentiles(result: ToleranceResult, metric: str = "bearing_error_max",
-                               ax=None):
+                               ax: Axes | None = None) -> Figure:
     """Percentiles over builds of a per-range metric vs range, per mirror."""
     fig, a = _one(ax)
     q = result.tolerance.percentiles
@@ -308,7 +316,7 @@ def plot_tolerance_percentiles(result: ToleranceResult, metric: str = "bearing_e
     return fig
 
 
-def plot_sensitivities(result: SensitivityResult, ax=None):
+def plot_sensitivities(result: SensitivityResult, ax: Axes | None = None) -> Figure:
     """Mean sensitivity of each mirror's bearing at D to each parameter (bar chart)."""
     from .tolerance import PARAMETERS
 
@@ -332,9 +340,9 @@ def plot_sensitivities(result: SensitivityResult, ax=None):
     return fig
 
 
-def plot_cloud_3d(cloud: Any, *, mirror: np.ndarray | None = None, ax=None,
+def plot_cloud_3d(cloud: Any, *, mirror: np.ndarray | None = None, ax: Axes3D | None = None,
                   max_points: int = 30_000, elev_deg: float = 25.0, azim_deg: float = -120.0,
-                  point_size: float = 1.0, title: str | None = None):
+                  point_size: float = 1.0, title: str | None = None) -> Figure:
     """Static 3D scatter of a point cloud, coloured by mirror (direct beams grey).
 
     For notebooks and users without Foxglove (``nodlidar view`` is the live view).
@@ -374,9 +382,9 @@ def plot_cloud_3d(cloud: Any, *, mirror: np.ndarray | None = None, ax=None,
     xyz, ids = xyz[keep], ids[keep]
     names = list(getattr(cloud, "mirror_names", ()) or ())
     if ax is None:
-        fig = plt.figure(figsize=(7.0, 5.6), layout="constrained")
-        ax = fig.add_subplot(projection="3d")
-    fig = ax.figure
+        ax = cast("Axes3D", plt.figure(figsize=(7.0, 5.6), layout="constrained")
+                  .add_subplot(projection="3d"))
+    fig = cast("Figure", ax.figure)
     for m in np.unique(ids):   # one scatter per mirror: a legend entry each
         sel = ids == m
         label = "direct" if m < 0 else (names[m] if m < len(names) else f"mirror {m}")

@@ -40,16 +40,21 @@ the runtime assembly before projection.
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..errors import CalibrationError, DesignFileError
 from ..geometry import Perturbation
+from ..spec import DesignSpec
 from .fit import CalibrationResult, design_hash
+
+if TYPE_CHECKING:
+    from ..solver import Design
 
 __all__ = ["Calibration", "CalibratedPerturbations", "calibration_from_result",
            "write_calibration", "load_calibration", "read_calibration"]
@@ -65,8 +70,9 @@ class CalibratedPerturbations(dict):
     range_offset_m: float = 0.0
     range_scale: float = 0.0
 
-    def __init__(self, perturbations=(), ambiguous_steps=(), range_offset_m: float = 0.0,
-                 range_scale: float = 0.0):
+    def __init__(self, perturbations: Mapping[str, Perturbation]
+                 | Iterable[tuple[str, Perturbation]] = (), ambiguous_steps: Iterable[int] = (),
+                 range_offset_m: float = 0.0, range_scale: float = 0.0):
         super().__init__(perturbations)
         self.ambiguous_steps = tuple(int(s) for s in ambiguous_steps)
         self.range_offset_m = float(range_offset_m)
@@ -173,7 +179,7 @@ def calibration_from_result(result: CalibrationResult, *, source: str = "",
         covariance=tuple(tuple(float(v) for v in row) for row in np.asarray(result.covariance)))
 
 
-def write_calibration(path: str | Path, cal: Calibration | CalibrationResult, **kw) -> Calibration:
+def write_calibration(path: str | Path, cal: Calibration | CalibrationResult, **kw: Any) -> Calibration:
     """Write a calibration TOML file; returns the :class:`Calibration` written."""
     import tomli_w
 
@@ -237,7 +243,7 @@ def read_calibration(path: str | Path) -> Calibration:
                        intrinsics=intr, parameter_names=names, covariance=matrix)
 
 
-def load_calibration(path: str | Path, design) -> Calibration:
+def load_calibration(path: str | Path, design: Design | DesignSpec) -> Calibration:
     """Read a calibration file and check it belongs to ``design`` (a Design or DesignSpec).
 
     Raises
@@ -249,7 +255,7 @@ def load_calibration(path: str | Path, design) -> Calibration:
         Missing or malformed file.
     """
     cal = read_calibration(path)
-    spec = getattr(design, "spec", design)
+    spec = design if isinstance(design, DesignSpec) else design.spec
     h = design_hash(spec)
     if cal.design_hash != h:
         raise CalibrationError(

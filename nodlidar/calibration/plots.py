@@ -7,7 +7,14 @@ matplotlib is imported inside the functions (``import nodlidar`` stays light).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure  # noqa: TID251 (types only, never imported at run time)
+
+    from .fit import CalibrationResult
 
 __all__ = ["plot_walls", "plot_residual_histograms", "plot_formats", "MIRROR_COLOURS"]
 
@@ -37,7 +44,8 @@ def _thin(a: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return a[np.sort(rng.choice(len(a), _MAX_POINTS, replace=False))]
 
 
-def plot_walls(result, *, calibrated: bool = True, title: str | None = None):
+def plot_walls(result: CalibrationResult, *, calibrated: bool = True,
+               title: str | None = None) -> Figure:
     """Figure 9: per wall orientation, each mirror's points against the wall.
 
     Top row: top view (sensor frame x-y) of the direct points and each mirror's calibrated
@@ -85,7 +93,7 @@ def plot_walls(result, *, calibrated: bool = True, title: str | None = None):
     return fig
 
 
-def plot_residual_histograms(result, *, bins: int = 80):
+def plot_residual_histograms(result: CalibrationResult, *, bins: int = 80) -> Figure:
     """Histogram of each mirror's point-to-wall distances before and after calibration."""
     import matplotlib.pyplot as plt  # noqa: TID251 (lazy, inside a plot function)
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import re
 import sys
+from collections.abc import Callable
 
 __all__ = ["configure", "status", "progress_disable", "plain", "paragraphs", "LOGGER",
            "catch_swallowed_interrupts", "raise_if_interrupted"]
@@ -51,7 +52,7 @@ def configure(verbosity: int) -> None:
 _swallowed_interrupt = False
 
 
-def catch_swallowed_interrupts():
+def catch_swallowed_interrupts() -> Callable[[], None]:
     """Remember a Ctrl-C that Python could not raise; returns the restorer.
 
     A ``KeyboardInterrupt`` raised where Python cannot propagate it (a ``gc`` callback such

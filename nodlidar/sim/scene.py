@@ -61,15 +61,18 @@ static world, ``1 + k`` mover ``k``.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 from ..errors import DesignFileError, ParameterError, require
 from ..paper import TRACKING_HEADING_DEG, TRACKING_SPEED_M_S
+
+if TYPE_CHECKING:
+    import trimesh
 
 __all__ = [
     "HIT_NONE",
@@ -141,13 +144,13 @@ class Box:
         object.__setattr__(self, "center_m", _v3(self.center_m, f"{self.name}.center_m"))
         require(min(self.size_m) > 0, f"{self.name}.size_m", self.size_m, "all > 0 m")
 
-    def mesh(self):
+    def mesh(self) -> trimesh.Trimesh:
         """trimesh.Trimesh of the box in the frame it is given in."""
         import trimesh
 
         T = np.eye(4)
         c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
-        T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+        T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
         T[:3, 3] = self.center_m
         return trimesh.creation.box(extents=self.size_m, transform=T)
 
@@ -191,7 +194,7 @@ class Plane:
         u /= np.linalg.norm(u)
         return u, np.cross(n, u)
 
-    def mesh(self):
+    def mesh(self) -> trimesh.Trimesh:
         u, v = self.axes()
         return _rect_mesh(np.asarray(self.center_m), u, v, *self.size_m)
 
@@ -275,7 +278,7 @@ class Wall:
                 out.append((u0, u1, z, h))
         return out
 
-    def mesh(self):
+    def mesh(self) -> trimesh.Trimesh:
         import trimesh
 
         n = np.asarray(self.normal)
@@ -285,7 +288,8 @@ class Wall:
         bottom = np.asarray(self.center_m) - self.size_m[1] / 2 * zc
         parts = [_rect_mesh(bottom + (u0 + u1) / 2 * u + (z0 + z1) / 2 * zc, u, zc, u1 - u0, z1 - z0)
                  for u0, u1, z0, z1 in self.rects()]
-        return trimesh.util.concatenate(parts)
+        # Trimesh parts concatenate to one Trimesh (the annotation says only Geometry)
+        return cast("trimesh.Trimesh", trimesh.util.concatenate(parts))
 
     def parts(self) -> list[tuple[str, Any]]:
         return [(self.name, self.mesh())]
@@ -306,7 +310,7 @@ class Pole:
         require(self.radius_m > 0, f"{self.name}.radius_m", self.radius_m, "> 0 m")
         require(self.height_m > 0, f"{self.name}.height_m", self.height_m, "> 0 m")
 
-    def mesh(self):
+    def mesh(self) -> trimesh.Trimesh:
         import trimesh
 
         T = np.eye(4)
@@ -368,7 +372,7 @@ class Cylinder:
         require(self.radius_m > 0, "cylinder.radius_m", self.radius_m, "> 0 m")
         require(self.height_m > 0, "cylinder.height_m", self.height_m, "> 0 m")
 
-    def mesh(self):
+    def mesh(self) -> trimesh.Trimesh:
         """Mesh in the object frame (trajectory point at the origin)."""
         import trimesh
 
@@ -429,7 +433,7 @@ class BackAndForth:
         require(self.length_m > 0, "trajectory.end_m", self.end_m, "different from start_m")
 
     @classmethod
-    def from_heading(cls, start_m, heading_rad: float, speed_m_s: float, length_m: float,
+    def from_heading(cls, start_m: Sequence[float], heading_rad: float, speed_m_s: float, length_m: float,
                      t0_s: float = 0.0) -> BackAndForth:
         """Leg of ``length_m`` [m] from ``start_m`` along heading ``heading_rad`` (from +x)."""
         s = np.asarray(start_m, dtype=float)
@@ -473,7 +477,7 @@ class Mover:
     trajectory: Trajectory
     name: str = "mover"
 
-    def mesh(self):
+    def mesh(self) -> trimesh.Trimesh:
         """Mesh in the object frame."""
         return self.shape.mesh()
 
@@ -703,7 +707,7 @@ def paper_tracking_scene() -> Scene:
     )
 
 
-def wall_scene(distance_m: float = 1.5, yaw_rad: float = 0.0, size_m=(8.0, 4.0),
+def wall_scene(distance_m: float = 1.5, yaw_rad: float = 0.0, size_m: tuple[float, float] = (8.0, 4.0),
                sensor_height_m: float = 0.0) -> Scene:
     """``"wall"``: one flat vertical wall, nothing else (calibration, paper Section IV).
 
