@@ -52,13 +52,15 @@ def capture_from_scans(design, scans, nod, *, mirror_left=None, mirror_right=Non
                      lift_left=lift_left, lift_right=lift_right)
     # a lifted side's beams are projected as direct ones: keep them only for an all-lifted
     # capture (the fit maps the reflected windows' steps through the deployed mirrors)
-    keep = ~cloud.lifted if mirrors_deployed else np.ones(len(cloud), bool)
+    lifted, nod_rad = cloud.lifted, cloud.nod_rad
+    assert lifted is not None and nod_rad is not None  # assemble() sets both (not a file's)
+    keep = ~lifted if mirrors_deployed else np.ones(len(cloud), bool)
     if not keep.any():
         raise CalibrationError(f"{name or 'capture'}: no usable beam (none inside the nod samples' "
                                "time span with its mirror deployed); are the scan and servo "
                                "clocks the same?")
     return WallCapture(steps=cloud.step[keep].astype(int), ranges_m=cloud.range_m[keep],
-                       nod_rad=cloud.nod_rad[keep], mirrors_deployed=mirrors_deployed, name=name)
+                       nod_rad=nod_rad[keep], mirrors_deployed=mirrors_deployed, name=name)
 
 
 def capture_from_capture(design, capture, *, name: str = "") -> WallCapture:

@@ -162,7 +162,9 @@ class BagRecorder:
             raise ParameterError("--storage", storage, " or ".join(STORAGES))
         self.path = Path(path)
         self.storage = storage
-        self.lift = {"mirror_left": lift_left, "mirror_right": lift_right}
+        self._lift_given = (lift_left, lift_right)
+        #: Each lift servo's profile (set by :meth:`open`).
+        self.lift: dict[str, MirrorLiftProfile] = {}
         # lift_left/lift_right are filled in at open() (from the design if not given)
         self.header = {"format": FORMAT, "design_toml": design_toml,
                        "calibration_toml": calibration_toml, **(extra or {})}
@@ -189,19 +191,22 @@ class BagRecorder:
         self._ts = ts = _typestore()
         if self.path.exists():
             raise NodlidarError(f"bag {self.path} exists already; choose a new --out directory")
-        if self.clouds or None in self.lift.values():
+        left, right = self._lift_given
+        if self.clouds or left is None or right is None:
             # built from the recorded text exactly as replay builds it, so the per-scan
             # PointCloud2 is the replay's cloud
             design, perts, cal_id = design_from_header(self.header)
-            for j, p in zip(self.lift, lift_profiles(design), strict=True):
-                self.lift[j] = self.lift[j] or p
+            dl, dr = lift_profiles(design)
+            left, right = left or dl, right or dr
         if self.clouds:
             from .assembly import AssemblyModel
 
             self._model = AssemblyModel.from_design(design, perts, cal_id)
             self._design, self._patches = design, design.patches(perts)
-        self.header["lift_left"] = _lift_dict(self.lift["mirror_left"])
-        self.header["lift_right"] = _lift_dict(self.lift["mirror_right"])
+        assert left is not None and right is not None  # given, or the design's just above
+        self.lift = {"mirror_left": left, "mirror_right": right}
+        self.header["lift_left"] = _lift_dict(left)
+        self.header["lift_right"] = _lift_dict(right)
         now_s = float(self.clock())
         self.epoch_offset_ns = time.time_ns() - _ns(now_s)
         self.header["epoch_offset_ns"] = self.epoch_offset_ns

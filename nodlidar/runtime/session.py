@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -41,7 +41,22 @@ from .actuators import (
 from .assembly import AssemblyModel, PointCloud, ScanBatch, assemble
 
 if TYPE_CHECKING:
+    from ..calibration.calfile import Calibration
+    from ..design import Design
     from ..sim.scene import Scene
+    from ..sim.sensor import SimulatedSensor
+    from .urg import UrgDriver
+
+_T = TypeVar("_T")
+
+
+def _need(x: _T | None) -> _T:
+    """``x``, which :meth:`Session.open` sets: a session used before ``open()`` (or after
+    ``close()``) says so in one line."""
+    if x is None:
+        raise DeviceError("the session is not open: use `with Session(...) as s:` or call "
+                          "open() first")
+    return x
 
 __all__ = ["Session", "Capture", "DEFAULT_DESIGN", "JOINT_IDS", "LiveAssembler", "CloudSpool",
            "Recorded", "record_capture"]
@@ -135,11 +150,12 @@ class Session:
         # the lift servos' profiles come from the design (lift_profiles), set by open()
         self.lift_left: MirrorLiftProfile | None = None
         self.lift_right: MirrorLiftProfile | None = None
-        self.design = None
-        self.calibration = None
+        # set by open()
+        self.design: Design | None = None
+        self.calibration: Calibration | None = None
         self.model: AssemblyModel | None = None
-        self.sim = None
-        self.urg = None
+        self.sim: SimulatedSensor | None = None
+        self.urg: UrgDriver | None = None
         self.bus: DynamixelBus | None = None
         self.time_source: Callable[[], float] = time.monotonic
         self.last_turns: list[tuple[float, float]] = []
@@ -154,40 +170,44 @@ class Session:
         from ..spec import load_design
         from .urg import UrgDriver
 
-        self.design = solve(load_design(self.design_path))
+        self.design = design = solve(load_design(self.design_path))
         perts, cal_id = None, "none"
         if self.calibration_path is not None:
             from ..calibration.calfile import load_calibration
 
-            self.calibration = load_calibration(self.calibration_path, self.design)
-            perts, cal_id = self.calibration.perturbations, self.calibration.id
-        self.model = AssemblyModel.from_design(self.design, perts, cal_id)
-        self.lift_left, self.lift_right = lift_profiles(self.design)
+            self.calibration = cal = load_calibration(self.calibration_path, design)
+            perts, cal_id = cal.perturbations, cal.id
+        self.model = AssemblyModel.from_design(design, perts, cal_id)
+        self.lift_left, self.lift_right = lift_profiles(design)
         try:
             if self.simulated:
                 from ..sim.scene import load_scene
                 from ..sim.sensor import SimulatedSensor
 
                 scene = load_scene(self.scene)  # a TOML scene is read here, not in a constructor
-                self.sim = SimulatedSensor(self.design, scene, perturbations=self.sim_perturbations,
-                                           transport=self.transport,
-                                           rate=self.sim_rate, noise=self.noise, seed=self.seed,
-                                           lift_left=self.lift_left, lift_right=self.lift_right)
-                self.sim.start()
-                self.time_source = self.sim.clock.now
-                lidar_url, servo_url = self.sim.lidar_url, self.sim.servo_url
+                self.sim = sim = SimulatedSensor(design, scene,
+                                                 perturbations=self.sim_perturbations,
+                                                 transport=self.transport,
+                                                 rate=self.sim_rate, noise=self.noise,
+                                                 seed=self.seed, lift_left=self.lift_left,
+                                                 lift_right=self.lift_right)
+                sim.start()
+                self.time_source = sim.clock.now
+                lidar_url, servo_url = _need(sim.lidar_url), _need(sim.servo_url)
                 built = "mirrors with as-built errors" if self.sim_perturbations else "mirrors as designed"
-                self.log(f"using the simulated sensor (scene {self.sim.scene.name!r}, {built}, "
+                self.log(f"using the simulated sensor (scene {sim.scene.name!r}, {built}, "
                          f"{self.transport} {lidar_url} + {servo_url}, {self.sim_rate:g}x real time)")
             else:
+                # the constructor took both ports or neither
+                assert self.port is not None and self.servo_port is not None
                 lidar_url, servo_url = self.port, self.servo_port
-            self.urg = UrgDriver(lidar_url, timeout=self.lidar_timeout_s,
-                                 plausibility=RangePlausibility() if self.plausibility else None
-                                 ).open()
+            self.urg = urg = UrgDriver(
+                lidar_url, timeout=self.lidar_timeout_s,
+                plausibility=RangePlausibility() if self.plausibility else None).open()
             # the simulated bus shares this machine's cores: give its replies more time
             self.bus = DynamixelBus(servo_url, time_source=self.time_source,
                                     timeout_s=0.5 if self.simulated else 0.1).open()
-            self.urg.sync_clock(time_source=self.time_source)
+            urg.sync_clock(time_source=self.time_source)
         except BaseException:
             self.close()
             raise
@@ -214,8 +234,8 @@ class Session:
     # -- info ------------------------------------------------------------------------------
     def info(self) -> dict[str, Any]:
         """Lidar VV/PP/II and the servos that answer a broadcast PING."""
-        i = self.urg.info()
-        servos = self.bus.discover()
+        i = _need(self.urg).info()
+        servos = _need(self.bus).discover()
         names = {v: k for k, v in JOINT_IDS.items()}
         return {"version": i.version, "params": i.params, "state": i.state,
                 "servos": [{"id": s.id, "model_number": s.model_number,
@@ -223,7 +243,7 @@ class Session:
                            for s in servos]}
 
     def nod_profile(self) -> NodProfile:
-        n = self.design.spec.nod
+        n = _need(self.design).spec.nod
         return NodProfile(n.pitch_min_rad, n.pitch_max_rad, n.rate_rad_s)
 
     # -- capture ---------------------------------------------------------------------------
@@ -249,7 +269,7 @@ class Session:
             Once, for the first thing that failed: the nod controller, a sampler whose
             line failed (the servo bus vanished), or the lidar stream.
         """
-        bus = self.bus
+        bus, urg = _need(self.bus), _need(self.urg)
         lifter = MirrorLift(bus, self.lift_left, self.lift_right)
         lifter.lift() if lift else lifter.reset()
         # keep=False (a consumer that prunes, as record_capture): every sample until
@@ -269,12 +289,12 @@ class Session:
         # in simulated seconds
         stall_s = 2.0 * max(1.0, self.sim_rate) if self.simulated else 2.0
         nod = NodController(bus, self.nod_profile(), stall_timeout_s=stall_s)
-        scans: list = [] if keep else _ScanWindow()
+        scans: Any = [] if keep else _ScanWindow()
         t0 = self.time_source()
         failed = False
         try:
             nod.start()
-            for scan in self.urg.stream():
+            for scan in urg.stream():
                 scans.append(scan)
                 _raise_sampler_error(samplers)
                 if on_scan is not None:
@@ -315,7 +335,7 @@ class Session:
         Keeps the scans whose beams overlap the ramp.
         """
         prof = self.nod_profile()
-        period = self.design.lidar.scan_period_s
+        period = _need(self.design).lidar.scan_period_s
         limit = timeout_s if timeout_s is not None else 3 * prof.period_s + 10.0
         last_report = [0.0]
 
@@ -493,7 +513,7 @@ class CloudSpool:
         self.part = self.path.with_name(self.path.name + ".part")
         self.n = 0
         self.first: PointCloud | None = None
-        self._fh = None
+        self._fh: IO[bytes] | None = None
 
     def __call__(self, cloud: PointCloud) -> None:
         from . import cloud as cloud_io
@@ -513,9 +533,8 @@ class CloudSpool:
         from .assembly import PointCloud as _PC
         from .cloud import write_cloud
 
-        if self._fh is None:
-            self._fh = self.part.open("wb")
-        self._fh.close()
+        fh = self._fh if self._fh is not None else self.part.open("wb")
+        fh.close()
         if self.first is not None:
             empty = replace(self.first, meta=dict(stats))
         else:
@@ -590,10 +609,11 @@ def record_capture(session: Session, recorder, stop: Callable[[list, NodControll
     pending scan needs them: memory stays flat over hours, and the live cloud equals
     ``nodlidar replay`` of the bag. ``on_progress(Recorded)`` runs after every scan.
     """
-    lidar = session.design.lidar
+    lidar = _need(session.design).lidar
+    model = _need(session.model)
     written = {j: float("-inf") for j in JOINT_IDS}
     spool = CloudSpool(cloud) if cloud is not None else None
-    live = (LiveAssembler(session.model, session.lift_left, session.lift_right, spool,
+    live = (LiveAssembler(model, _need(session.lift_left), _need(session.lift_right), spool,
                           **dict(assemble_kw or {})) if spool is not None else None)
     info = Recorded(0, 0, float("nan"), float("nan"), cloud_path=spool.path if spool else None)
 
@@ -633,12 +653,12 @@ def record_capture(session: Session, recorder, stop: Callable[[list, NodControll
         recorder.commit()
         info.scans, info.samples = recorder.scans, recorder.samples
         info.t_start_s, info.t_end_s = cap.t_start_s, cap.t_end_s
-        if live is not None:
+        if live is not None and spool is not None:
             live.finish(cap.joints)
             info.stats = dict(live.stats)
             info.max_pending_scans = live.max_pending
             info.cloud_points = spool.n
-            spool.close(session.model, live.stats, (assemble_kw or {}).get("frame", "sensor"))
+            spool.close(model, live.stats, (assemble_kw or {}).get("frame", "sensor"))
     except BaseException:
         if spool is not None:
             spool.discard()

@@ -45,6 +45,7 @@ import tty
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -273,7 +274,7 @@ class _Servo:
     def get(self, name: str, table: bytes | bytearray | None = None) -> int:
         it = CONTROL_TABLE[name]
         src = self.table if table is None else table
-        return decode_value(src[it.address : it.end], it.signed)
+        return decode_value(bytes(src[it.address : it.end]), it.signed)
 
     @property
     def id(self) -> int:
@@ -438,7 +439,8 @@ class _Servo:
 def _bulk_blocks(p: bytes, *, with_data: bool):
     """``(id, address, length)`` blocks of a BULK_READ, or ``(id, address, data)`` of a
     BULK_WRITE; nothing if the parameters do not split into whole blocks."""
-    blocks, k = [], 0
+    blocks: list[tuple[int, int, Any]] = []
+    k = 0
     while k < len(p):
         if k + 5 > len(p):
             return []
@@ -621,7 +623,7 @@ class DxlEmulator:
 
     def _do_write(self, s: _Servo, t: float, address: int, data: bytes) -> int:
         err, new = s.check_write(address, data)
-        if err:
+        if err or new is None:  # new is None only with an error
             return err
         old_id = s.id
         s.apply(t, address, len(data), new)
@@ -681,11 +683,11 @@ class DxlEmulator:
             address, length = decode_value(p[:2]), decode_value(p[2:4])
             out = []
             for sid in p[4:]:
-                s = self._servos.get(sid)
-                if s is None:
+                srv = self._servos.get(sid)
+                if srv is None:
                     continue
-                err, data = s.read(t, address, length)
-                out += self._reply(s, err, data, is_read=True)
+                err, data = srv.read(t, address, length)
+                out += self._reply(srv, err, data, is_read=True)
             return out
         if ins == Instruction.SYNC_WRITE:
             if not bc or len(p) < 6:
@@ -695,16 +697,16 @@ class DxlEmulator:
             if length == 0 or len(body) % (length + 1):
                 return []
             for k in range(0, len(body), length + 1):
-                s = self._servos.get(body[k])
-                if s is not None:
-                    self._do_write(s, t, address, body[k + 1 : k + 1 + length])
+                srv = self._servos.get(body[k])
+                if srv is not None:
+                    self._do_write(srv, t, address, body[k + 1 : k + 1 + length])
             return []
         if ins == Instruction.BULK_WRITE:
             if bc:
                 for sid, address, data in _bulk_blocks(p, with_data=True):
-                    s = self._servos.get(sid)
-                    if s is not None:
-                        self._do_write(s, t, address, data)
+                    srv = self._servos.get(sid)
+                    if srv is not None:
+                        self._do_write(srv, t, address, data)
             return []
         if ins in (Instruction.BULK_READ, Instruction.FAST_BULK_READ):
             if not bc:
