@@ -26,6 +26,7 @@ import re
 import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -94,6 +95,11 @@ _STATUS_RE = re.compile(rb"[0-9A-Z]{2}")
 _CHAR_MAX = 0x6F
 _TAG_RE = re.compile(r"[A-Za-z0-9 ._+@]*")
 _TAG_MAX = 16
+_U8_CHAR0 = np.uint8(_CHAR0)
+_BAD_CHAR = "scip data character is invalid; allowed: '0'..'o' (0x30-0x6F)"
+#: place values of the 6-bit digits of a 2/3/4-character group, for one matrix product
+_MAX = np.maximum.reduce  # the ufunc itself: ndarray.max() adds Python-level overhead
+_DIGIT_WEIGHTS = {n: (64.0 ** np.arange(n - 1, -1, -1)).astype(np.float32) for n in (2, 3, 4)}
 
 
 class ScipChecksumWarning(UserWarning):
@@ -207,7 +213,7 @@ def decode_value(chars: bytes | str) -> int:
     if not 1 <= len(chars) <= 4:
         raise ProtocolError(f"scip value = {bytes(chars)[:8]!r} is invalid; allowed: 1 to 4 "
                             "characters")
-    return int(decode_values(chars, len(chars))[0])
+    return _decode_int(chars)
 
 
 def _check_nchars(n_chars: int) -> None:
@@ -270,14 +276,35 @@ def decode_values(data: bytes | bytearray | memoryview | np.ndarray, n_chars: in
         raise ProtocolError(
             f"scip data length = {a.size} is invalid; allowed: a multiple of {n_chars}"
         )
-    if a.size and (a.min() < _CHAR0 or a.max() > _CHAR_MAX):
-        raise ProtocolError("scip data character is invalid; allowed: '0'..'o' (0x30-0x6F)")
-    g = (a.reshape(-1, n_chars).astype(np.int32) - _CHAR0)
-    out = g[:, 0].copy()
-    for i in range(1, n_chars):  # at most 3 whole-array operations
-        out <<= 6
-        out |= g[:, i]
-    return out
+    if a.dtype != np.uint8:  # any other integer array: range first, then the byte path
+        if a.size and (a.min() < _CHAR0 or a.max() > _CHAR_MAX):
+            raise ProtocolError(_BAD_CHAR)
+        a = a.astype(np.uint8)
+    return _decode_digits(a, n_chars)
+
+
+def _decode_digits(a: np.ndarray, n_chars: int) -> np.ndarray:
+    """:func:`decode_values` of a uint8 array whose size is a multiple of ``n_chars``."""
+    # 6-bit digits; a character below '0' wraps round to >= 0xD0, so one maximum checks
+    # both ends of '0'..'o'
+    g = a - _U8_CHAR0
+    if g.size and _MAX(g, axis=None) > 0x3F:
+        raise ProtocolError(_BAD_CHAR)
+    if n_chars == 1:
+        return g.astype(np.int32).ravel()
+    # one matrix-vector product: exact in float32, every partial sum is an integer < 2**24
+    return (g.reshape(-1, n_chars) @ _DIGIT_WEIGHTS[n_chars]).astype(np.int32)
+
+
+def _decode_int(chars: bytes) -> int:
+    """One 1-4 character group to an int in plain Python (the timestamp: no arrays)."""
+    v = 0
+    for c in chars:
+        c -= _CHAR0
+        if not 0 <= c <= 0x3F:
+            raise ProtocolError(_BAD_CHAR)
+        v = (v << 6) | c
+    return v
 
 
 def _line_sums(block: np.ndarray) -> np.ndarray:
@@ -306,14 +333,64 @@ def encode_data_block(encoded: bytes, width: int = DATA_LINE_CHARS) -> bytes:
     return b"".join(parts)
 
 
-def _verify_block(block: bytes) -> np.ndarray:
-    """Strictly verify LF-terminated ``<content><sum>`` lines at once (vectorised).
+class _Layout(NamedTuple):
+    """Where the lines of one shape of LF-terminated ``<content><sum>`` block lie."""
 
-    Returns the joined content (sums and LFs removed) as a uint8 array.
-    """
-    a = np.frombuffer(block, dtype=np.uint8)
-    if a.size == 0:
-        return a
+    n_lines: int
+    #: (2 * n_lines,) intp: each line's first byte and its sum's position, the boundaries
+    #: for one ``np.add.reduceat``: content sums at even, sum + LF at odd entries
+    bounds: np.ndarray
+    #: (n_content,) intp: positions of the content bytes, in order (sums and LFs left out)
+    content: np.ndarray
+    #: what ``block[first_lf::stride]`` is when the LFs sit where this layout has them
+    lf_stride: bytes
+
+
+def _layout_from_lf(lf: np.ndarray, lf_stride: bytes = b"") -> _Layout:
+    bounds = np.empty(2 * lf.size, dtype=np.intp)
+    bounds[0] = 0
+    bounds[2::2] = lf[:-1] + 1
+    bounds[1::2] = lf - 1
+    keep = np.ones(int(lf[-1]) + 1, dtype=bool)
+    keep[lf] = False
+    keep[lf - 1] = False
+    return _Layout(int(lf.size), bounds, np.flatnonzero(keep), lf_stride)
+
+
+#: (block length, first line length) -> the layout a device sends: any first line (the
+#: timestamp), then lines of DATA_LINE_CHARS + sum + LF, the last one shorter
+_DEVICE_LAYOUTS: dict[tuple[int, int], _Layout] = {}
+_DEVICE_LAYOUTS_MAX = 64
+
+
+def _device_layout(buf: bytes, start: int, end: int) -> _Layout | None:
+    """The layout of the block ``buf[start:end]`` if it is the device's (LFs exactly
+    there), else None."""
+    n, first = end - start, buf.find(LF, start, end)
+    first = first - start if first >= 0 else -1
+    lay = _DEVICE_LAYOUTS.get((n, first))
+    if lay is None:
+        if first < 2:  # no LF, or an empty first line: left to the general path
+            return None
+        w = DATA_LINE_CHARS + 2
+        lf = list(range(first, n, w))
+        if lf[-1] != n - 1:
+            if n - 1 - lf[-1] < 3:  # a last line without content: the general path
+                return None
+            lf.append(n - 1)
+        if len(_DEVICE_LAYOUTS) >= _DEVICE_LAYOUTS_MAX:
+            _DEVICE_LAYOUTS.clear()  # bounded whatever arrives; a device uses one or two
+        lay = _layout_from_lf(np.array(lf, dtype=np.intp), LF * len(range(first, n, w)))
+        _DEVICE_LAYOUTS[(n, first)] = lay
+    # every LF where the layout has one, the last byte one and no other LF anywhere
+    if (buf[end - 1] != 0x0A or buf.count(LF, start, end) != lay.n_lines
+            or buf[start + first:end:DATA_LINE_CHARS + 2] != lay.lf_stride):
+        return None
+    return lay
+
+
+def _any_layout(a: np.ndarray) -> _Layout:
+    """The layout of any block (uint8 array), or the ProtocolError that frames it badly."""
     lf = np.flatnonzero(a == 0x0A)
     if lf.size == 0 or lf[-1] != a.size - 1:
         raise ProtocolError("scip data block does not end with LF; allowed: lines + sum + LF")
@@ -322,20 +399,44 @@ def _verify_block(block: bytes) -> np.ndarray:
     starts[1:] = lf[:-1] + 1
     if (lf - starts).min() < 2:
         raise ProtocolError("scip data line is empty; allowed: content followed by a sum")
-    totals = np.add.reduceat(a, starts, dtype=np.int64)  # content + sum + LF
-    sums = a[lf - 1].astype(np.int64)
-    want = ((totals - sums - 0x0A) & 0x3F) + _CHAR0
-    bad = np.flatnonzero(want != sums)
-    if bad.size:
-        i = int(bad[0])
-        raise ProtocolError(
-            f"scip checksum of data line {i} = {chr(sums[i])!r} is invalid; "
-            f"allowed: {chr(want[i])!r}"
-        )
-    keep = np.ones(a.size, dtype=bool)
-    keep[lf] = False
-    keep[lf - 1] = False
-    return a[keep]
+    return _layout_from_lf(lf)
+
+
+#: content sum (mod 256) -> the sum character plus LF (0x0A) that must follow it
+_SUM_LF = ((np.arange(256) & 0x3F) + _CHAR0 + 0x0A).astype(np.uint8)
+
+
+def _verify_block(buf: bytes, start: int = 0, end: int | None = None) -> np.ndarray:
+    """Strictly verify LF-terminated ``<content><sum>`` lines at once (vectorised).
+
+    The block is ``buf[start:end]`` (read in place, not copied). Returns the joined content
+    (sums and LFs removed) as a uint8 array. The device's layout is recognised with a few
+    bytes operations and its index arrays are cached, so a scan costs four numpy calls:
+    one ``reduceat`` for every line's sums, a table look-up of the wanted sum characters,
+    a comparison of bytes, one gather of the content.
+    """
+    end = len(buf) if end is None else end
+    a = np.frombuffer(buf, dtype=np.uint8, count=end - start, offset=start)
+    if a.size == 0:
+        return a
+    lay = _device_layout(buf, start, end) or _any_layout(a)
+    # mod 256 sums suffice: the checksum is mod 64
+    r = np.add.reduceat(a, lay.bounds, dtype=np.uint8)
+    if _SUM_LF.take(r[0::2]).tobytes() != r[1::2].tobytes():
+        _raise_checksum(a, lay)
+    return a.take(lay.content)
+
+
+def _raise_checksum(a: np.ndarray, lay: _Layout) -> None:
+    """Raise the ProtocolError naming the first line whose sum does not verify."""
+    content = np.add.reduceat(a, lay.bounds, dtype=np.int64)[0::2]
+    sums = a[lay.bounds[1::2]].astype(np.int64)
+    want = (content & 0x3F) + _CHAR0
+    i = int(np.flatnonzero(want != sums)[0])
+    raise ProtocolError(
+        f"scip checksum of data line {i} = {chr(sums[i])!r} is invalid; "
+        f"allowed: {chr(want[i])!r}"
+    )
 
 
 def _verify_lines(lines: Sequence[bytes]) -> np.ndarray:
@@ -709,6 +810,8 @@ def parse_status_line(line: bytes) -> tuple[str, bool]:
         Wrong length or checksum.
     """
     if len(line) == 3:
+        if ((line[0] + line[1]) & 0x3F) + _CHAR0 == line[2] and _STATUS_RE.fullmatch(line, 0, 2):
+            return line[:2].decode("ascii"), False  # the usual case, without copies
         status = verify_line(line)
         # a byte changed by +-0x40 or 0x80 keeps the sum: statuses are [0-9A-Z] (SPEC §9)
         if _STATUS_RE.fullmatch(status) is None:
@@ -768,10 +871,44 @@ class ScipReply:
 
 
 _PRINTABLE_RE = re.compile(rb"[\x20-\x7e]{2,}")
+#: echo -> command code (a device echoes the same few lines again and again)
+_command_code = functools.lru_cache(maxsize=256)(lambda echo: split_command(echo)[0])
 
 
 def _echo_ok(line: bytes) -> bool:
     return _PRINTABLE_RE.fullmatch(line) is not None
+
+
+def _parse_parts(message: bytes) -> tuple[bytes, bytes, int, str, str, str, bool,
+                                           np.ndarray | None]:
+    """:func:`parse_reply` without building the body tuple.
+
+    Returns ``(msg, text, body_at, echo, code, status, scip1, payload)``: ``text`` is the
+    message without its final ``LF LF``, the body lines start at ``text[body_at:]``
+    (``body_at`` is -1 if there are none), ``code`` is the echo's command code.
+    """
+    msg = bytes(message)
+    text = msg[:-2] if msg.endswith(b"\n\n") else msg.rstrip(b"\n")
+    i = text.find(LF)
+    if i < 0:
+        raise ProtocolError(
+            f"scip message = {msg[:40]!r} is invalid; allowed: echo, status line, LF LF"
+        )
+    if not _PRINTABLE_RE.fullmatch(text, 0, i):
+        raise ProtocolError(f"scip echo = {text[:i][:40]!r} is invalid; allowed: printable ASCII")
+    j = text.find(LF, i + 1)
+    status, scip1 = parse_status_line(text[i + 1:j] if j >= 0 else text[i + 1:])
+    echo = text[:i].decode("ascii")
+    code = _command_code(echo)
+    payload = None
+    if not scip1 and code in _STRICT_CODES:
+        if j < 0:
+            payload = np.zeros(0, dtype=np.uint8)
+        elif len(text) + 2 == len(msg):  # msg is text + LF LF: the block is read in place
+            payload = _verify_block(msg, j + 1, len(text) + 1)
+        else:
+            payload = _verify_block(text[j + 1:] + LF)
+    return msg, text, (j + 1 if j >= 0 else -1), echo, code, status, scip1, payload
 
 
 def parse_reply(message: bytes) -> ScipReply:
@@ -790,27 +927,9 @@ def parse_reply(message: bytes) -> ScipReply:
     ProtocolError
         Anything malformed.
     """
-    msg = bytes(message)
-    text = msg[:-2] if msg.endswith(b"\n\n") else msg.rstrip(b"\n")
-    lines = text.split(LF)
-    if len(lines) < 2:
-        raise ProtocolError(
-            f"scip message = {msg[:40]!r} is invalid; allowed: echo, status line, LF LF"
-        )
-    if not _echo_ok(lines[0]):
-        raise ProtocolError(f"scip echo = {lines[0][:40]!r} is invalid; allowed: printable ASCII")
-    status, scip1 = parse_status_line(lines[1])
-    echo = lines[0].decode("ascii")
-    body = tuple(lines[2:])
-    code = split_command(echo)[0]
-    payload = None
-    if not scip1 and code in _STRICT_CODES:
-        if body:
-            start = len(lines[0]) + len(lines[1]) + 2
-            payload = _verify_block(text[start:] + LF)
-        else:
-            payload = np.zeros(0, dtype=np.uint8)
-    elif any(len(x) == 0 for x in body):
+    msg, text, body_at, echo, _, status, scip1, payload = _parse_parts(message)
+    body = tuple(text[body_at:].split(LF)) if body_at >= 0 else ()
+    if payload is None and any(len(x) == 0 for x in body):
         raise ProtocolError("scip message has an empty body line; allowed: LF LF only at end")
     return ScipReply(echo=echo, status=status, body=body, scip1=scip1, raw=msg, payload=payload)
 
@@ -1076,30 +1195,51 @@ def decode_scan(reply: ScipReply | bytes) -> ScanFrame:
         does not match the echoed start/end/cluster.
     """
     if not isinstance(reply, ScipReply):
+        # straight from the bytes: no body tuple, no ScipReply (the hot path of a driver)
+        _, text, at, echo, _, status, _, payload = _parse_parts(reply)
+        if payload is not None:
+            end = text.find(LF, at) if at >= 0 else -1
+            ts_line = b"" if at < 0 else text[at:end] if end >= 0 else text[at:]
+            return _scan_frame(echo, status, at >= 0, ts_line, payload, (), ts_line[:4])
         reply = parse_reply(reply)
+    body = reply.body
+    return _scan_frame(reply.echo, reply.status, bool(body), body[0] if body else b"",
+                       reply.payload, body, None)
+
+
+def _scan_frame(echo: str, status: str, has_body: bool, ts_line: bytes,
+                payload: np.ndarray | None, body: Sequence[bytes],
+                ts_chars: bytes | None) -> ScanFrame:
+    """The checks and decoding of :func:`decode_scan` once the message is split
+    (``ts_chars``: the timestamp characters if ``payload`` was verified from ``ts_line``)."""
     try:
-        req = _parse_request_cached(reply.echo)
+        req = _parse_request_cached(echo)
     except (ScipRequestError, ParameterError) as e:
-        raise ProtocolError(f"scip scan echo = {reply.echo!r} is invalid; {e}") from None
-    check_status(reply)
-    if not reply.body:
+        raise ProtocolError(f"scip scan echo = {echo!r} is invalid; {e}") from None
+    if status not in ("00", "99"):
+        raise ScipStatusError(_command_code(echo), status, allowed=("00", "99"))
+    if not has_body:
         raise ProtocolError(
             f"scip {req.command} reply has no timestamp line; allowed: timestamp + data "
             "(an MD/MS acknowledgement carries no scan)"
         )
-    ts_line = reply.body[0]
     if len(ts_line) != 5:
         raise ProtocolError(f"scip timestamp line = {ts_line!r} is invalid; allowed: 4 chars + sum")
-    payload = reply.payload if reply.payload is not None else _verify_lines(reply.body)
-    ts = int(decode_values(payload[:4], 4)[0])
-    ranges = decode_values(payload[4:], req.n_chars)
+    if payload is None:
+        payload = _verify_lines(body)
+    # 4 characters: plain Python, not the array path
+    ts = _decode_int(payload[:4].tobytes() if ts_chars is None else ts_chars)
+    data = payload[4:]
+    if data.size % req.n_chars:
+        decode_values(data, req.n_chars)  # raises the length error
+    ranges = _decode_digits(data, req.n_chars)
     if ranges.size != req.n_values:
         raise ProtocolError(
             f"scip {req.command} value count = {ranges.size} is invalid; "
             f"allowed: {req.n_values} for {req.line()}"
         )
     ranges.setflags(write=False)
-    return ScanFrame(request=req, status=reply.status, timestamp_ms=ts, ranges_mm=ranges)
+    return ScanFrame(request=req, status=status, timestamp_ms=ts, ranges_mm=ranges)
 
 
 # ---------------------------------------------------------------------------------------

@@ -570,3 +570,116 @@ def test_plausibility_parameters_and_physics():
     assert f.flag(r, dmin_mm=20, dmax_mm=5600).tolist() == [False, True, False, False, False]
     with pytest.raises(ParameterError, match="previous_mm"):
         f.flag(r, dmin_mm=20, dmax_mm=5600, previous_mm=r[:3])
+
+
+# --- the fast verify/decode path (issue 16) against independent references --------------
+def _reference_block(block: bytes) -> tuple[str, object]:
+    """Per-line pure-Python reference of a data block's verification: ``("ok", content)``
+    or ``("err", index of the first line whose sum fails | "framing")``."""
+    if not block.endswith(b"\n"):
+        return "err", "framing"
+    lines = block[:-1].split(b"\n")
+    if any(len(x) < 2 for x in lines):
+        return "err", "framing"
+    for i, line in enumerate(lines):
+        if (sum(line[:-1]) & 0x3F) + 0x30 != line[-1]:
+            return "err", i
+    return "ok", b"".join(x[:-1] for x in lines)
+
+
+def _verify_outcome(block: bytes) -> tuple[str, object]:
+    try:
+        return "ok", scip._verify_block(block).tobytes()
+    except ProtocolError as e:
+        m = re.search(r"data line (\d+)", str(e))
+        return "err", int(m[1]) if m else "framing"
+
+
+@pytest.mark.parametrize("name", ["a", "b"])
+def test_verify_block_every_single_byte_change_as_the_per_line_reference(name):
+    """Every byte of a real capture's data block changed (+-1, +-64 - the changes a 6-bit
+    sum can miss or catch - to LF, to '0'), plus every byte deleted: the cached
+    device-layout path accepts and refuses exactly what a per-line pure-Python check does,
+    naming the same line."""
+    raw = _capture(name)
+    text = raw[:-2]
+    block = text[text.index(b"\n", text.index(b"\n") + 1) + 1:] + b"\n"
+    assert scip._device_layout(block, 0, len(block)) is not None  # the fast path is taken
+    n_ok = 0
+    for i in range(len(block)):
+        variants = {block[:i] + block[i + 1:]}
+        for v in (block[i] + 1, block[i] - 1, block[i] + 64, block[i] - 64, 0x0A, 0x30):
+            if 0 <= v <= 255 and v != block[i]:
+                variants.add(block[:i] + bytes([v]) + block[i + 1:])
+        for b in variants:
+            want = _reference_block(b)
+            assert _verify_outcome(b) == want, (i, b[max(0, i - 5):i + 5])
+            n_ok += want[0] == "ok"
+    assert n_ok > 0  # +-64 on a content byte keeps the sum: some variants verify
+
+
+@pytest.mark.parametrize("width", [1, 7, 32, 63, 64, 65, 200])
+def test_decode_scan_any_line_width(width):
+    """Lines of any width verify and decode as the device's 64 (the general layout path),
+    from bytes and from a parsed reply alike; values as encoded."""
+    rng = np.random.default_rng(width)
+    v = rng.integers(0, 64 ** 3, 682)
+    enc = scip.encode_values(v, 3)
+    lines = [scip.with_checksum(scip.encode_value(123456, 4))]
+    lines += [scip.with_checksum(enc[k:k + width]) for k in range(0, len(enc), width)]
+    raw = scip.encode_message("GD0044072501", "00", lines)
+    f, g = scip.decode_scan(raw), scip.decode_scan(scip.parse_reply(raw))
+    for x in (f, g):
+        assert x.timestamp_ms == 123456 and x.ranges_mm.dtype == np.int32
+        assert np.array_equal(x.ranges_mm, v) and not x.ranges_mm.flags.writeable
+
+
+@pytest.mark.parametrize("n_chars", [2, 3, 4])
+def test_decode_values_every_character(n_chars):
+    """Each of the 256 byte values in each position of a group: the 64 valid characters
+    decode to their place value (checked against int arithmetic), the others are refused
+    with the one message."""
+    for pos in range(n_chars):
+        for c in range(256):
+            group = bytearray(b"0" * n_chars)
+            group[pos] = c
+            if 0x30 <= c <= 0x6F:
+                got = scip.decode_values(bytes(group), n_chars)
+                assert got.tolist() == [(c - 0x30) << (6 * (n_chars - 1 - pos))]
+                assert scip.decode_value(bytes(group)) == got[0]
+            else:
+                with pytest.raises(ProtocolError, match="data character is invalid"):
+                    scip.decode_values(bytes(group), n_chars)
+                with pytest.raises(ProtocolError, match="data character is invalid"):
+                    scip.decode_value(bytes(group))
+    top = 64 ** n_chars - 1  # the largest value: exact through the float32 product
+    assert scip.decode_values(b"o" * n_chars, n_chars).tolist() == [top]
+
+
+def test_decode_scan_bytes_and_reply_agree_on_corruptions():
+    """decode_scan(bytes) takes its own path (no ScipReply): on the captures and on random
+    corruptions of them it returns or raises exactly what decode_scan(parse_reply(...))
+    does."""
+    rng = np.random.default_rng(5)
+
+    def outcome(fn):
+        try:
+            f = fn()
+        except (ProtocolError, DeviceError) as e:
+            return type(e).__name__, str(e)
+        return f.request, f.status, f.timestamp_ms, f.ranges_mm.tolist()
+
+    for name in ("a", "b"):
+        raw = _capture(name)
+        cases = [raw, raw[:-1], raw + b"\n", raw.rstrip(b"\n")]
+        for _ in range(300):
+            b = bytearray(raw)
+            for p in rng.integers(0, len(raw), rng.integers(1, 3)):
+                b[p] = int(rng.integers(0, 256))
+            cases.append(bytes(b))
+        for c in cases:
+
+            def via_reply(c=c):
+                return scip.decode_scan(scip.parse_reply(c))
+
+            assert outcome(lambda c=c: scip.decode_scan(c)) == outcome(via_reply)
