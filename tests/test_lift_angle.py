@@ -19,7 +19,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from nodlidar.dynamixel import RAD_PER_TICK
-from nodlidar.errors import ParameterError
+from nodlidar.errors import DeviceError, ParameterError
 from nodlidar.geometry import DIRECT, rotate_about_line
 from nodlidar.hinge import side_lift_axes
 from nodlidar.runtime import actuators, servo_angles
@@ -251,3 +251,14 @@ def test_emulate_reports_the_design_lift_angles(lift_toml, tmp_path):
     assert info["servos"] == {"nod": 1, "mirror_left": 2, "mirror_right": 3}
     assert info["lift"] == {"mirror_left": {"deployed_rad": 0.0, "lifted_rad": -LIFT},
                             "mirror_right": {"deployed_rad": 0.0, "lifted_rad": LIFT}}
+
+
+def test_session_profiles_are_set_by_open(lift_toml):
+    """Before open() a Session has no design, hence no lift profiles: using it says so in
+    one line (not an AttributeError on None)."""
+    s = Session(lift_toml)
+    assert s.lift_left is None and s.lift_right is None
+    with pytest.raises(DeviceError, match="session is not open"):
+        s.nod_profile()
+    with pytest.raises(DeviceError, match="session is not open"):
+        s.info()
