@@ -687,7 +687,9 @@ def monte_carlo(
             done += sizes[i]
             if progress:
                 progress(done, tol.samples)
-    cat = {k: np.concatenate([r[k] for r in results]) for k in results[0]}  # type: ignore[index]
+    chunks = [r for r in results if r is not None]
+    assert len(chunks) == len(results)  # every chunk came back (a failed one raised above)
+    cat = {k: np.concatenate([r[k] for r in chunks]) for k in chunks[0]}
     return ToleranceResult(design_name=design.spec.name, tolerance=tol, mirror_names=prob.names,
                            ranges_m=prob.ranges, seed=tol.seed, chunk_size=tol.chunk_size,
                            n_samples=tol.samples, **cat)

@@ -419,6 +419,10 @@ def beam_map(design, perturbations: dict[str, Perturbation] | None) -> np.ndarra
 class _MirrorProblem:
     """The residual function of one mirror over all captures (vectorised over points)."""
 
+    #: (n,) int: the capture of each point; set by whoever gathers the points
+    #: (_mirror_problem), carried over by subset/with_ranges
+    kidx: np.ndarray
+
     def __init__(self, design, name: str, steps, ranges, nod, normals, offsets, model: str,
                  mirror_steps: np.ndarray | None = None):
         self.design = design
@@ -847,15 +851,16 @@ def _fit_joint(design, dcands: list[tuple], fits: list[CaptureFit], robust: dict
                                        -config.range_scale_bound])[list(active)]])
     b_hi = -b_lo
     theta = np.clip(theta, b_lo, b_hi)
-    jkw = dict(active=active, intr_base=intr0, known=known)
-    full = _Joint(design, planes, dcands, {n: rb[0] for n, rb in robust.items()}, **jkw)
+    full = _Joint(design, planes, dcands, {n: rb[0] for n, rb in robust.items()},
+                  active=active, intr_base=intr0, known=known)
     for _ in range(4):
         full.set_weights(theta)
         rows = np.concatenate(direct_used + [used[n] for n in robust]
                               + [np.ones(len(known), bool)])
         direct = [(s[u], r[u], n[u]) for (s, r, n), u in zip(dcands, direct_used)]
         joint = _Joint(design, planes, direct, {n: rb[0].subset(used[n]) for n, rb in
-                                                robust.items()}, **jkw)
+                                                robust.items()},
+                       active=active, intr_base=intr0, known=known)
         joint.w = full.w[rows]
         theta, f, J = _gauss_newton(joint, theta, b_lo, b_hi)
         # re-gate every candidate against the joint solution
@@ -1036,11 +1041,11 @@ def calibrate(design, captures: list[WallCapture], *, model: str = "exact",
         t0 = cf.plane.tangents[0] - (cf.plane.tangents[0] @ n) * n
         t0 /= np.linalg.norm(t0)
         t = np.stack([t0, np.cross(n, t0)])
-        i = slice(3 * k, 3 * k + 3)
+        rows3 = slice(3 * k, 3 * k + 3)
         ek = nres[:joint.nd][joint.cap_rows[:joint.nd] == k]
         pl = Plane(point=c + dc * n, normal=n,
                    rms_m=float(np.sqrt(np.mean(ek**2))) if ek.size else cf.plane.rms_m,
-            inliers=np.asarray(direct_used[k], bool), tangents=t, cov=cov[i, i])
+            inliers=np.asarray(direct_used[k], bool), tangents=t, cov=cov[rows3, rows3])
         new_fits.append(CaptureFit(name=cf.name, plane=pl, direct_points=cf.direct_points,
                                    inlier_share=float(direct_used[k].mean()),
                                    expected_rms_m=cf.expected_rms_m))
@@ -1176,12 +1181,13 @@ def quality_gates(result: CalibrationResult, config: CalibrationConfig) -> list[
                        f"{cf.plane.rms_m * 1e3:.1f} mm = {ratio:.1f}x the noise, limit "
                        f"{config.max_rms_ratio:g}x): use a flat wall, or move to a flat stretch")
     for name, m in result.mirrors.items():
-        for p in m.at_bound:
-            i = PARAMS.index(p)
-            u, k = UNITS[p]
-            out.append(f"mirror {name}: {p} ended on its bound ({m.perturbation.as_array()[i] * k:+.1f} "
+        for par in m.at_bound:
+            i = PARAMS.index(par)
+            u, k = UNITS[par]
+            out.append(f"mirror {name}: {par} ended on its bound "
+                       f"({m.perturbation.as_array()[i] * k:+.1f} "
                        f"{u}): the fit is not trustworthy - check the mirror is seated, and the "
-                       f"walls are clear; widen calibration.{p}_bound_* only if it really is "
+                       f"walls are clear; widen calibration.{par}_bound_* only if it really is "
                        "mounted that far off")
         if m.used_share < config.min_inlier_share:
             out.append(f"mirror {name}: only {m.used_share:.0%} of its reflected points near the "
@@ -1189,13 +1195,13 @@ def quality_gates(result: CalibrationResult, config: CalibrationConfig) -> list[
                        "in its view of the wall (furniture, a doorway) - clear the wall or turn "
                        "the sensor")
         n = m.after.n
-        p = m.expected_within_band
+        p_band = m.expected_within_band
         # 5 % slack: the used points are gated at gate_sigma, so a sound fit is at or above
         # the prediction; a wrong one (issue 12: L2 off by 32 mrad) had 7-39 % in band
-        if n and m.after.within_band < p - 4 * math.sqrt(p * (1 - p) / n) - 0.05:
+        if n and m.after.within_band < p_band - 4 * math.sqrt(p_band * (1 - p_band) / n) - 0.05:
             out.append(f"mirror {name}: {m.after.within_band:.1%} of its points lie within "
                        f"+-{m.after.band_m * 100:.2f} cm of the wall, the noise model predicts "
-                       f"{p:.1%}: the wall or the fit is off - clear the wall, check it is flat")
+                       f"{p_band:.1%}: the wall or the fit is off - clear the wall, check it is flat")
         ratio = m.after.rms_m / m.expected_rms_m
         if ratio > config.max_rms_ratio:
             out.append(f"mirror {name}: residual RMS {m.after.rms_m * 1e3:.1f} mm is {ratio:.1f}x "
