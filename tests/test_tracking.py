@@ -328,3 +328,53 @@ def test_scanpoints_is_neutral_and_live_path_does_not_import_the_simulated_sourc
             "nodlidar.tracking.tracker; print('nodlidar.tracking.simdata' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_renyi_closed_form_derivatives_match_finite_differences():
+    # the gradient and Hessian Newton's method uses against central differences of the
+    # cost itself (float32 pair sums: agreement to ~1e-3 relative is the float32 rounding
+    # of the differenced cost, well below what would move a Newton step)
+    from nodlidar.tracking.motion import _hessian, _renyi_derivatives
+
+    vel = np.array([0.0014, 0.13])
+    P, T = _ring_cloud(vel)
+    cost = RenyiCost(P, T, T.max(), 0.01, vel, max_dv_m_s=0.05)
+    for w in (vel, vel + [0.008, -0.005]):
+        f, g, H = _renyi_derivatives(cost, w)
+        assert_allclose(f, cost(w), rtol=1e-12)
+        gn = [(cost(w + e) - cost(w - e)) / 2e-4 for e in np.eye(2) * 1e-4]
+        assert_allclose(g, gn, rtol=2e-3, atol=1e-3 * np.abs(g).max())
+        assert_allclose(H, _hessian(cost, w, np.array([1e-3, 1e-3])), rtol=1e-2,
+                        atol=1e-2 * np.abs(H).max())
+
+
+def test_newton_and_nelder_mead_find_the_same_renyi_minimum():
+    # one cost, two minimisers: the minimum agrees to Nelder-Mead's own tolerance
+    # (xatol 0.5 mm/s), from a start 5 mm/s and 3 deg off
+    vel = np.array([0.0014, 0.13])
+    P, T = _ring_cloud(vel, noise=0.01)
+    guess = MotionEstimate(0.135, np.radians(86.4))
+    a = refine_motion(P, T, guess, sigma_m=0.01, search_m_s=0.03)
+    b = refine_motion(P, T, guess, sigma_m=0.01, search_m_s=0.03, renyi_method="newton")
+    assert_allclose(b.velocity, a.velocity, atol=5e-4)
+    assert b.cov is not None and np.all(np.linalg.eigvalsh(b.cov) > 0)
+
+
+@pytest.mark.parametrize("fusion", ["window", "kalman"])
+def test_window_fusion_reports_the_window_estimate(fusion):
+    # "window": each scan's entropy estimate over the track's window supersedes the previous
+    # one (the windows share their scans), so the filter's velocity is that estimate (prior
+    # variance 100 (m/s)^2 against the 0.01 m/s floor: weight 1 - 1e-6); "kalman" fuses
+    # them as independent measurements and starts from a zero velocity, so it lags
+    trk = Tracker(TrackerConfig(velocity_fusion=fusion))
+    gaps = []
+    for k in range(8):
+        trk.update(_Seg(k, [_blob([2, 0.013 * k, 0.5], k)]))
+        tr = next(iter(trk.tracks.values()))
+        if tr.motion is not None:
+            gaps.append(float(np.linalg.norm(tr.x[2:] - tr.motion.velocity)))
+    assert len(gaps) == 7
+    if fusion == "window":
+        assert max(gaps) < 1e-5
+    else:
+        assert gaps[0] > 1e-3

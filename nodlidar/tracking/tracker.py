@@ -88,6 +88,19 @@ class TrackerConfig:
     accel_sigma_m_s2 : float
         Constant-velocity process noise: white acceleration spectral density, as a sigma
         [m/s^2 per sqrt(Hz)] (people and robots at walking pace change velocity slowly).
+    velocity_fusion : {"kalman", "window", "first"}
+        How the entropy velocity enters the filter. ``"kalman"``: as an independent
+        measurement every scan, noise = the refinement's curvature covariance + the floor
+        (smooths the estimate's scan-to-scan jitter, but successive windows share their
+        scans, so it counts them many times over and the zero-velocity birth prior and the
+        first scans' estimates linger). ``"window"``: each estimate supersedes the previous
+        (the prior's velocity is forgotten; noise = the floor): no lag, the estimator's
+        jitter passes through. ``"first"``: ``"kalman"`` with the birth prior forgotten at
+        the first estimate. docs/tracking.md has the speed x heading grid for each.
+    renyi_method : {"newton", "nelder-mead"}
+        Rényi minimiser (:func:`refine_motion`); Newton's method on the closed-form
+        derivatives takes a few passes over the pairs instead of ~50 (same minimum within
+        the Nelder-Mead tolerance).
     """
 
     gate_m: float = 0.6
@@ -114,11 +127,17 @@ class TrackerConfig:
     # synthetic one (measured, 3 seeds each; two levels only, (9, 9), halves the time but
     # moved one synthetic seed's heading by 5 deg)
     warm_voxel_grid: tuple[int, ...] = (9, 9, 9)
+    velocity_fusion: str = "kalman"
+    renyi_method: str = "newton"
 
     def __post_init__(self) -> None:
         require(self.confirm_scans >= 2, "confirm_scans", self.confirm_scans, ">= 2")
         require(self.max_missed >= 0, "max_missed", self.max_missed, ">= 0")
         require(self.entropy in ("voxel", "renyi"), "entropy", self.entropy, "voxel or renyi")
+        require(self.renyi_method in ("nelder-mead", "newton"), "renyi_method",
+                self.renyi_method, "nelder-mead or newton")
+        require(self.velocity_fusion in ("window", "first", "kalman"), "velocity_fusion",
+                self.velocity_fusion, "window, first or kalman")
         require(self.gate_m > 0, "gate_m", self.gate_m, "> 0 m")
         require(self.gate_chi2 > 0, "gate_chi2", self.gate_chi2, "> 0")
         require(self.merge_m >= 0, "merge_m", self.merge_m, ">= 0 m")
@@ -180,6 +199,10 @@ class TrackState:
 # (x, vx, y, vy) (Stone Soup's order) <-> (x, y, vx, vy) (TrackState's)
 _PERM = np.array([0, 2, 1, 3])
 _EPOCH = _dt.datetime(2000, 1, 1, tzinfo=_dt.UTC)
+
+
+_BIRTH_SIGMA_V_M_S = 0.5  # velocity sigma of a new track: a person walks at most ~1.5 m/s (3 sigma)
+_FORGET_VAR_M2_S2 = 100.0  # a prior velocity variance that carries no information (10 m/s sigma)
 
 
 def _stamp(t_s: float) -> _dt.datetime:
@@ -259,7 +282,7 @@ class Tracker:
     def _birth(self, c: np.ndarray, t: float):
         from stonesoup.types.state import GaussianState
 
-        sp, sv = self.config.position_sigma_m, 0.5  # a person walks at most ~1.5 m/s: 3 sigma
+        sp, sv = self.config.position_sigma_m, _BIRTH_SIGMA_V_M_S
         return GaussianState(np.array([[c[0]], [0.0], [c[1]], [0.0]]),
                              np.diag([sp ** 2, sv ** 2, sp ** 2, sv ** 2]), timestamp=_stamp(t))
 
@@ -267,7 +290,8 @@ class Tracker:
         pred, _, _ = self._filters()
         return pred.predict(tr.state, timestamp=_stamp(t))
 
-    def _update(self, tr: _Track, prior, c: np.ndarray, vel, vel_cov) -> None:
+    def _update(self, tr: _Track, prior, c: np.ndarray, vel, vel_cov,
+                first_velocity: bool = False) -> None:
         from stonesoup.types.detection import Detection
         from stonesoup.types.hypothesis import SingleHypothesis
 
@@ -280,10 +304,25 @@ class Tracker:
             z = np.array([[c[0]], [c[1]], [vel[0]], [vel[1]]])
             R = np.zeros((4, 4))
             R[:2, :2] = np.eye(2) * cfg.position_sigma_m ** 2
-            vc = np.asarray(vel_cov, float) if vel_cov is not None else np.zeros((2, 2))
-            if not np.all(np.isfinite(vc)):
-                vc = np.zeros((2, 2))
-            R[2:, 2:] = vc + np.eye(2) * cfg.velocity_sigma_m_s ** 2
+            if cfg.velocity_fusion == "window" or (cfg.velocity_fusion == "first"
+                                                   and first_velocity):
+                # the window estimate supersedes the previous one (module docstring): the
+                # prior's velocity is forgotten (a variance far above any walking speed's,
+                # no correlation with the position)
+                from stonesoup.types.state import GaussianState
+
+                P = np.array(prior.covar, float)
+                P[[1, 3], :] = 0.0
+                P[:, [1, 3]] = 0.0
+                P[1, 1] = P[3, 3] = _FORGET_VAR_M2_S2
+                prior = GaussianState(prior.state_vector, P, timestamp=prior.timestamp)
+            if cfg.velocity_fusion == "window":
+                R[2:, 2:] = np.eye(2) * cfg.velocity_sigma_m_s ** 2
+            else:
+                vc = np.asarray(vel_cov, float) if vel_cov is not None else np.zeros((2, 2))
+                if not np.all(np.isfinite(vc)):
+                    vc = np.zeros((2, 2))
+                R[2:, 2:] = vc + np.eye(2) * cfg.velocity_sigma_m_s ** 2
             mm = LinearGaussian(4, (0, 2, 1, 3), R)
         det = Detection(z, timestamp=prior.timestamp, measurement_model=mm)
         tr.state = upd.update(SingleHypothesis(prior, det))
@@ -319,6 +358,7 @@ class Tracker:
         tr.motion = refine_motion(P, Tp, tr.motion if warm else tr.coarse, entropy=cfg.entropy,
                                   sigma_m=cfg.sigma_m, voxel_m=cfg.voxel_m, n_scans=len(tr.scans),
                                   max_points=cfg.max_points,
+                                  renyi_method=cfg.renyi_method,
                                   voxel_max_points=cfg.voxel_max_points,
                                   search_m_s=cfg.warm_search_m_s if warm else 0.08,
                                   **({"voxel_grid": cfg.warm_voxel_grid} if warm else {}))
@@ -424,10 +464,11 @@ class Tracker:
             t = float(scan.t_s[idx].mean())
             prior = priors[a, bs[0]] if len(bs) == 1 else self._predict(tr, t)
             self._add(tr, scan, idx, c, t)
+            first = tr.motion is None
             self._estimate(tr)
             m = tr.motion
             self._update(tr, prior, c, None if m is None else m.velocity,
-                         None if m is None else m.cov)
+                         None if m is None else m.cov, first_velocity=first)
             st = self._state(tr)
             changed.append(st)
         # new clusters within merge_m of each other are pieces of one new object
