@@ -522,3 +522,22 @@ def test_cli_sim_distance_per_wall(capsys):
         assert abs(m["dd_m"] - TRUTH[name].dd) <= 1e-3
     assert main(["calibrate", "--sim", "--design", str(PAPER), "--distance", "1", "2"]) == 2
     assert "--distance" in capsys.readouterr().err
+
+
+def test_beam_map_names_its_codes_with_the_geometry_sentinels():
+    """The paper-exact reading: L2's tip shadows L1's steps 616..625 and R2's R1's 143..152
+    (found by hand in test_paper_reproduction); beam_map calls them BLOCKED (blocked by
+    anything - not HOUSING, the verify code for the lidar head), and every other beam
+    reaches its design mirror or stays DIRECT, unperturbed."""
+    from nodlidar.calibration.fit import beam_map
+    from nodlidar.geometry import BLOCKED, DIRECT, HOUSING
+
+    exact = solve(load_design(ROOT / "design" / "urg04lx-paper-exact.toml"))
+    steps = exact.lidar.steps
+    m = beam_map(exact, None)
+    shadowed = set(range(616, 626)) | set(range(143, 153))
+    assert set(steps[m == BLOCKED]) == shadowed
+    assert not np.any(m == HOUSING)
+    ok = ~np.isin(steps, sorted(shadowed))
+    np.testing.assert_array_equal(m[ok], exact.mirror_of_step[ok])
+    assert np.all(m[np.isin(steps, [*range(612, 616), *range(153, 157)])] == DIRECT)
