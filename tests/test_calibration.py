@@ -541,3 +541,21 @@ def test_beam_map_names_its_codes_with_the_geometry_sentinels():
     ok = ~np.isin(steps, sorted(shadowed))
     np.testing.assert_array_equal(m[ok], exact.mirror_of_step[ok])
     assert np.all(m[np.isin(steps, [*range(612, 616), *range(153, 157)])] == DIRECT)
+
+
+@pytest.mark.parametrize("fit", ["fit_plane", "fit_plane_msac"])
+def test_points_on_a_line_are_refused_by_both_plane_fits(fit):
+    """A capture without nodding: every direct point on one line y = 1 m of the scan plane
+    (plus millimetre noise) leaves the wall's tilt free; both fits refuse it, naming why."""
+    from nodlidar.calibration import walls
+
+    rng = np.random.default_rng(2)
+    x = np.linspace(-1.0, 1.0, 200)
+    pts = np.stack([x, np.ones_like(x), np.zeros_like(x)], -1) + rng.normal(size=(200, 3)) * 1e-3
+    args = (pts,) if fit == "fit_plane" else (pts, np.full(200, 0.01))
+    with pytest.raises(CalibrationError, match="almost on a line"):
+        getattr(walls, fit)(*args, name="wall")
+    # the same points spread over a nodding sweep (z from -0.3 to 0.3 m) fit
+    pts[:, 2] = rng.uniform(-0.3, 0.3, 200)
+    args = (pts,) if fit == "fit_plane" else (pts, np.full(200, 0.01))
+    assert abs(getattr(walls, fit)(*args, name="wall").normal[1]) > 0.999

@@ -116,6 +116,17 @@ def _pca(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return c, vt[-1]
 
 
+def _require_spread(q: np.ndarray, centre: np.ndarray, min_spread: float, name: str) -> None:
+    """Refuse points ``(n, 3)`` that lie almost on a line: their second singular value about
+    ``centre`` below ``min_spread`` times the first. Points on a line (a capture without
+    nodding) leave the plane's tilt about that line free."""
+    sv = np.linalg.svd(q - centre, compute_uv=False)
+    if sv[1] < min_spread * sv[0]:
+        raise CalibrationError(f"{name}: the direct-beam points lie almost on a line (spread ratio "
+                               f"{sv[1] / sv[0]:.3g} < {min_spread}); a wall plane needs the head to "
+                               "nod during the capture")
+
+
 def fit_plane(points: np.ndarray, *, mad_k: float = 4.0, max_iter: int = 20,
               min_points: int = 20, min_spread: float = 0.02, name: str = "capture") -> Plane:
     """PCA plane fit with iterative outlier trimming.
@@ -164,12 +175,7 @@ def fit_plane(points: np.ndarray, *, mad_k: float = 4.0, max_iter: int = 20,
             break
         keep = new
     c, n = _pca(p[keep])
-    sv = np.linalg.svd(p[keep] - c, compute_uv=False)
-    # points on a line (a capture without nodding) leave the plane's tilt about that line free
-    if sv[1] < min_spread * sv[0]:
-        raise CalibrationError(f"{name}: the direct-beam points lie almost on a line (spread ratio "
-                               f"{sv[1] / sv[0]:.3g} < {min_spread}); a wall plane needs the head to "
-                               "nod during the capture")
+    _require_spread(p[keep], c, min_spread, name)
     if c @ n < 0:
         n = -n
     rms = float(np.sqrt(np.mean(((p[keep] - c) @ n) ** 2)))
@@ -262,11 +268,7 @@ def fit_plane_msac(points: np.ndarray, sigma_m: np.ndarray, *, k_sigma: float = 
             break
         inl = new
     cen, n = _weighted_plane(q[inl], w[inl])
-    sv = np.linalg.svd(q[inl] - q[inl].mean(0), compute_uv=False)
-    if sv[1] < min_spread * sv[0]:
-        raise CalibrationError(f"{name}: the direct-beam points lie almost on a line (spread ratio "
-                               f"{sv[1] / sv[0]:.3g} < {min_spread}); a wall plane needs the head to "
-                               "nod during the capture")
+    _require_spread(q[inl], q[inl].mean(0), min_spread, name)
     if cen @ n < 0:
         n = -n
     dist = (q[inl] - cen) @ n
