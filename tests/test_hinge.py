@@ -31,6 +31,8 @@ from nodlidar.solver import solve
 from nodlidar.spec import load_design
 
 PAPER = Path(__file__).resolve().parents[1] / "design" / "urg04lx-paper.toml"
+# the paper read to its four printed numbers: unchained mirrors, L2's tip in front of L1
+EXACT = PAPER.with_name("urg04lx-paper-exact.toml")
 # the issue's tolerances: same glass pose to 0.01 mm / 0.01 deg
 POS_TOL_MM = 0.01
 ANG_TOL_DEG = 0.01
@@ -40,10 +42,11 @@ ANG_TOL_DEG = 0.01
 def builds():
     spec = load_design(PAPER)
     return {"paper": solve(spec),
-            "k5": solve(spec.replace(**{"layout.windows": 5, "layout.mirrors_per_side": 4}))}
+            "k5": solve(spec.replace(**{"layout.windows": 5, "layout.mirrors_per_side": 4})),
+            "exact": solve(load_design(EXACT))}
 
 
-@pytest.fixture(scope="module", params=["paper", "k5"])
+@pytest.fixture(scope="module", params=["paper", "k5", "exact"])
 def design(request, builds):
     return builds[request.param]
 

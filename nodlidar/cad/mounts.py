@@ -29,6 +29,20 @@ Parts
     glass's back edge; the wedge is too thin for a square stop of ``min_wall_mm``). The
     pocket is open in front (the glass goes in from the lidar side) and no wall stands
     in a beam path; the glass is bonded to the datum faces.
+
+    Close unchained neighbours (``placement.chain = false``, e.g. the paper read to its
+    printed numbers, ``design/urg04lx-paper-exact.toml``, where L2's outer end stands
+    4.9 mm in front of L1's glass near L1's inner end): a free end stop that would run
+    into the neighbour's glass is cut back to clear it by ``pocket_clearance_mm / 2`` -
+    at the neighbour's glass end when the two ends face each other across a short gap
+    (one web between the two pockets then holds both ends), else at the neighbour's face
+    plane, where the stop stands in front of the lower part of that glass, below the beam
+    band, as a lip that also keeps its bottom in the pocket (that glass goes in from
+    above). The cut stop must still meet its glass end over ``end_stop_depth_mm`` and be
+    ``min_wall_mm`` wide, else the build is refused naming both mirrors. An unchained
+    glass's back plate is cut at each end to the glass's shadow as seen from the lidar
+    (the ray from the optical centre tangent to the glass end), so that the beams passing
+    between the glasses do not graze it. Chained sides are built exactly as before.
 ``glass_<mirror>`` (reference)
     The mirror glass: its front face *is* the solved :class:`~nodlidar.geometry.MirrorPatch`.
 ``servo_<side>``, ``lidar`` (reference)
@@ -153,15 +167,16 @@ class SideLayout:
     chained: bool
     stop_polygons: tuple[np.ndarray, ...] = ()   # (4, 2) xy polygons of the end stops
     stop_ends: tuple[tuple[str, str], ...] = ()  # (mirror name, "outer"/"inner") per stop
+    # per stop: the neighbour glass it was cut back to clear (None: a plain stop); empty
+    # when no stop of the side was cut (every chained design)
+    stop_beside: tuple[str | None, ...] = ()
 
 
-def _clip_behind(poly: np.ndarray, axis: HingeAxis) -> np.ndarray | None:
-    """The part of the plan polygon ``poly (k, 2)`` [mm] on or behind the hinge axis (on
-    its ``outward`` side), or None if nothing is left (Sutherland-Hodgman against one
-    half-plane: exact for any simple polygon, which stays one piece here because the
-    carrier's polygons each cross the axis line at most once)."""
-    a0, w = np.asarray(axis.point_mm)[:2], np.asarray(axis.outward)[:2]
-    e = (poly - a0) @ w
+def _clip_halfplane(poly: np.ndarray, p0: np.ndarray, w: np.ndarray) -> np.ndarray | None:
+    """The part of the convex-or-simple plan polygon ``poly (k, 2)`` [mm] where
+    ``(p - p0) . w >= 0``, or None if nothing is left (Sutherland-Hodgman against one
+    half-plane: exact for any simple polygon that crosses the line at most twice)."""
+    e = (poly - p0) @ w
     if np.all(e >= 0):
         return poly
     out = []
@@ -179,6 +194,46 @@ def _clip_behind(poly: np.ndarray, axis: HingeAxis) -> np.ndarray | None:
         return None
     area = 0.5 * abs(float(np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1])))
     return q if area > 1e-9 else None
+
+
+def _clip_behind(poly: np.ndarray, axis: HingeAxis) -> np.ndarray | None:
+    """The part of the plan polygon ``poly (k, 2)`` [mm] on or behind the hinge axis (on
+    its ``outward`` side), or None if nothing is left (the carrier's polygons each cross
+    the axis line at most once, so the part kept is one piece)."""
+    return _clip_halfplane(poly, np.asarray(axis.point_mm)[:2], np.asarray(axis.outward)[:2])
+
+
+def _convex_overlap(a: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> bool:
+    """Whether two convex plan polygons ``(k, 2)`` [mm] share area (separating axis test;
+    polygons that only touch, within ``tol`` mm, do not overlap)."""
+    for poly in (a, b):
+        edges = np.roll(poly, -1, axis=0) - poly
+        normals = np.c_[-edges[:, 1], edges[:, 0]]
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        pa, pb = a @ normals.T, b @ normals.T          # (ka, k), (kb, k) projections
+        if np.any((pa.max(0) <= pb.min(0) + tol) | (pb.max(0) <= pa.min(0) + tol)):
+            return False
+    return True
+
+
+def _min_width(poly: np.ndarray) -> float:
+    """Smallest width [mm] of a convex plan polygon ``(k, 2)`` (over its edge directions,
+    where the minimum of a convex polygon's width is always attained)."""
+    edges = np.roll(poly, -1, axis=0) - poly
+    normals = np.c_[-edges[:, 1], edges[:, 0]]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    proj = poly @ normals.T
+    return float((proj.max(0) - proj.min(0)).min())
+
+
+def _inside(poly: np.ndarray, pts: np.ndarray, tol: float = 1e-6) -> bool:
+    """Whether the points ``(m, 2)`` lie in the convex polygon ``(k, 2)`` (or within
+    ``tol`` mm of it), whichever its orientation."""
+    edges = np.roll(poly, -1, axis=0) - poly
+    cross = edges[:, 0][None, :] * (pts[:, None, 1] - poly[None, :, 1]) \
+        - edges[:, 1][None, :] * (pts[:, None, 0] - poly[None, :, 0])
+    cross /= np.linalg.norm(edges, axis=1)[None, :]
+    return bool(np.all(cross >= -tol) or np.all(cross <= tol))
 
 
 def _check_vertical(design: Design) -> None:
@@ -200,6 +255,94 @@ def _stop_polygon(end: np.ndarray, away: np.ndarray, n: np.ndarray, gap: float,
     a0, a1 = end + gap * away, end + (gap + params.end_stop_length_mm) * away
     front, back = t - params.end_stop_depth_mm, t + params.wall_mm
     return np.array([a0 - front * n, a1 - front * n, a1 - back * n, a0 - back * n])[:, :2]
+
+
+def _in_shadow(poly: np.ndarray, glass: np.ndarray) -> np.ndarray:
+    """The plan polygon ``poly (k, 2)`` [mm] (a back plate) cut to the angular shadow of
+    its ``glass (4, 2)`` (face ends, then back corners) as seen from the lidar's optical
+    centre (the head frame's origin): at each end, by the ray from the origin through the
+    end's corner (front or back) farthest round from the glass's middle, the tangent to
+    the glass there. What is cut away stood beyond the glass end, where a beam passing the
+    end would meet it; nothing the glass lies on is removed."""
+    mid = glass.mean(axis=0)
+    q: np.ndarray | None = poly
+    for pair in ((0, 3), (1, 2)):                     # (face, back) corner of each end
+        c = glass[list(pair)]
+        ang = np.arctan2(mid[0] * c[:, 1] - mid[1] * c[:, 0], c @ mid)
+        p = c[int(np.argmax(np.abs(ang)))]
+        w = np.array([-p[1], p[0]])
+        w = w if w @ mid >= 0 else -w
+        if q is not None and np.all(glass @ w >= -1e-9):
+            q = _clip_halfplane(q, np.zeros(2), w)
+    if q is None:   # pragma: no cover - a plate wider than its glass's shadow cannot vanish
+        raise CadBuildError("a back plate lies wholly outside its glass's shadow")
+    return q
+
+
+def _stop_fails(stop: np.ndarray, j: int, which: str, ends: list[np.ndarray],
+                dirs: list[np.ndarray], normals: list[np.ndarray], gap: float,
+                params: MountParams, t: float) -> str:
+    """Why the plan polygon ``stop (k, 2)`` [mm] no longer works as the ``which`` end stop
+    of mirror ``j`` ("" if it does): it must still meet the glass end over the whole
+    designed contact (from ``end_stop_depth_mm`` in front of the datum back to the datum,
+    at the pocket's end ``gap`` beyond the glass) and be at least ``min_wall_mm`` wide."""
+    o, i = ends[j]
+    end, away = (o, -dirs[j]) if which == "outer" else (i, dirs[j])
+    n = normals[j]
+    contact = np.array([end + gap * away - (t - params.end_stop_depth_mm) * n,
+                        end + gap * away - t * n])[:, :2]
+    if not _inside(stop, contact):
+        return (f"no longer meets the glass end over cad.end_stop_depth_mm = "
+                f"{params.end_stop_depth_mm:g} mm")
+    width = _min_width(stop)
+    if width < params.min_wall_mm:
+        return f"is {width:.2f} mm thin (< cad.min_wall_mm = {params.min_wall_mm:g} mm)"
+    return ""
+
+
+def _stop_beside(stop: np.ndarray, j: int, which: str, k: int, ms: list[Any],
+                 ends: list[np.ndarray], dirs: list[np.ndarray], normals: list[np.ndarray],
+                 gap: float, params: MountParams, t: float) -> np.ndarray:
+    """The ``which`` end stop of mirror ``j`` (plan polygon ``stop (4, 2)``, mm) cut back so
+    that it clears the glass of mirror ``k`` by the pocket play ``gap``.
+
+    Two cuts are tried, the first that leaves a working stop (:func:`_stop_fails`) wins:
+
+    1. at ``k``'s nearer glass end (``gap`` beyond it): the ends face each other across a
+       gap too short for two free stops, and what is left is one web between the two
+       pockets that holds both glass ends (``k``'s own stop, cut the same way, is the
+       same web);
+    2. at ``k``'s face plane (``gap`` in front of it): the end of ``j`` overhangs ``k``'s
+       glass in plan (unchained mirrors whose ends overlap as seen from the lidar, e.g.
+       the paper's L2 tip in front of L1's inner end). The stop then stands in front of
+       the lower part of ``k``'s glass, below the beam band (it is no taller than any
+       stop), a lip that also keeps that glass's bottom in its pocket, which it enters
+       from above.
+
+    Raises :class:`CadBuildError` naming both mirrors if neither cut leaves a stop.
+    """
+    ok, ik = ends[k]
+    nk = normals[k]
+    cands = []
+    for end_k, out_k in ((ok, -dirs[k]), (ik, dirs[k])):
+        cands.append(((end_k + gap * out_k)[:2], out_k[:2]))    # beyond k's end
+    cands.append(((ok + gap * nk)[:2], nk[:2]))                  # in front of k's face
+    reasons = []
+    for p0, w in cands:
+        q = _clip_halfplane(stop, p0, w)
+        if q is None:
+            reasons.append("nothing is left")
+            continue
+        why = _stop_fails(q, j, which, ends, dirs, normals, gap, params, t)
+        if not why:
+            return q
+        reasons.append(why)
+    raise CadBuildError(
+        f"the end stop at the {which} end of {ms[j].name} runs into glass_{ms[k].name} and "
+        f"cannot be cut back to clear it (beyond its ends: {reasons[0]} / {reasons[1]}; in "
+        f"front of its face: {reasons[2]}): the mirrors are too close; use a smaller "
+        f"cad.end_stop_length_mm ({params.end_stop_length_mm:g} mm) or "
+        "cad.pocket_clearance_mm, or move the mirrors apart")
 
 
 def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
@@ -242,6 +385,9 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
         fronts = [p for o, i in ends for p in (o, i)] + los + his
         stops: list[np.ndarray] = []
         stop_ends: list[tuple[str, str]] = []
+        trimmed: dict[int, str] = {}     # stop index -> the neighbour glass it was cut to
+        glass_plans = [np.array([o, i, i - t * n, o - t * n])[:, :2]
+                       for (o, i), n in zip(ends, normals, strict=True)]
         if chained:
             for j in range(len(ms) - 1):
                 # the joint face (datum end of j to datum start of j + 1) must still run
@@ -261,14 +407,25 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
             polys: tuple[np.ndarray, ...] = (np.array(inner + outer[::-1])[:, :2],)
             free = [(0, "outer"), (len(ms) - 1, "inner")]
         else:
-            polys = tuple(np.array([lo - t * n, hi - t * n, hi - (t + w) * n,
-                                    lo - (t + w) * n])[:, :2]
-                          for lo, hi, n in zip(los, his, normals, strict=True))
+            # each back plate is cut at both ends to its glass's shadow as seen from
+            # the lidar: unchained glass leaves beams through the gaps between them,
+            # which must not graze a plate standing out beyond the glass end
+            polys = tuple(_in_shadow(np.array([lo - t * n, hi - t * n, hi - (t + w) * n,
+                                               lo - (t + w) * n])[:, :2], gp)
+                          for lo, hi, n, gp in zip(los, his, normals, glass_plans, strict=True))
             free = [(j, e) for j in range(len(ms)) for e in ("outer", "inner")]
         for j, which in free:
             o, i = ends[j]
             end, away = (o, -dirs[j]) if which == "outer" else (i, dirs[j])
-            stops.append(_stop_polygon(end, away, normals[j], gap, params, t))
+            stop = _stop_polygon(end, away, normals[j], gap, params, t)
+            # close unchained neighbours: a stop that would run into another glass of
+            # the side is cut back to that glass (see _stop_beside)
+            for k in range(len(ms)):
+                if k != j and _convex_overlap(stop, glass_plans[k]):
+                    stop = _stop_beside(stop, j, which, k, ms, ends, dirs, normals,
+                                        gap, params, t)
+                    trimmed[len(stops)] = ms[k].name
+            stops.append(stop)
             stop_ends.append((ms[j].name, which))
         # the hinge axis is the side's lift axis (nodlidar.hinge, from the faces alone);
         # the carrier conforms to it: material lidar-ward of it (the end stops' front
@@ -278,10 +435,20 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
         a0, c, wdir = (np.asarray(axis.point_mm), np.asarray(axis.direction),
                        np.asarray(axis.outward))
         polys = tuple(q for q in (_clip_behind(poly, axis) for poly in polys) if q is not None)
-        kept = [(q, se) for q, se in ((_clip_behind(sp, axis), se)
-                                      for sp, se in zip(stops, stop_ends, strict=True))
+        kept = [(q, se, trimmed.get(n)) for n, (q, se) in enumerate(
+                    (_clip_behind(sp, axis), se) for sp, se in zip(stops, stop_ends, strict=True))
                 if q is not None]
-        stops, stop_ends = [q for q, _ in kept], [se for _, se in kept]
+        stops, stop_ends = [q for q, _, _ in kept], [se for _, se, _ in kept]
+        stop_beside = tuple(b for _, _, b in kept)
+        for q, (mname, which), beside in kept:
+            if beside is not None:
+                # the axis clip must not have cut away what the trimmed stop holds
+                j = [m.name for m in ms].index(mname)
+                why = _stop_fails(q, j, which, ends, dirs, normals, gap, params, t)
+                if why:
+                    raise CadBuildError(
+                        f"the end stop at the {which} end of {mname}, cut back to clear "
+                        f"glass_{beside}, {why} behind the hinge axis")
         fronts = [f for f in fronts if (f[:2] - a0[:2]) @ wdir[:2] >= -1e-9]
         pts = np.vstack([*polys, *stops, np.array(fronts)[:, :2]])
         u = (pts - a0[:2]) @ c[:2]
@@ -291,7 +458,8 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
         out[side] = SideLayout(side=side, mirror_names=tuple(m.name for m in ms), axis=axis,
                                back_polygons=polys, skirt_polygon=hull, u_lo=float(u.min()),
                                u_hi=float(u.max()), chained=chained, stop_polygons=tuple(stops),
-                               stop_ends=tuple(stop_ends))
+                               stop_ends=tuple(stop_ends),
+                               stop_beside=stop_beside if any(stop_beside) else ())
     return out
 
 
