@@ -34,6 +34,7 @@ from .mounts import (
     part_shapes,
 )
 from .params import MountParams, mount_params_from_spec
+from .preview import PREVIEW_VIEWS, read_stl_triangles, render_preview  # noqa: F401 (API)
 
 __all__ = ["Manifest", "export_cad", "MANIFEST_NAME"]
 
@@ -108,59 +109,6 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-#: Preview viewpoints (elevation, azimuth) [deg]: from the front right and above (the
-#: side the beams leave from), and straight down.
-PREVIEW_VIEWS = ((28.0, -50.0, "front-right view"), (90.0, -90.0, "top view"))
-
-
-def _render_preview(meshes: dict[str, dict[str, Any]], colors: dict[str, tuple], path: Path,
-                    title: str) -> None:
-    """Render both states' triangles with matplotlib (Agg) into ``path``.
-
-    One row per state, one column per :data:`PREVIEW_VIEWS` entry. All triangles of a
-    view go into a single collection so that matplotlib depth-sorts them together (one
-    collection per part is sorted per part, which draws the base plate over the carriers).
-    """
-    import matplotlib  # noqa: TID251 (lazy, inside the preview renderer)
-
-    matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure  # noqa: TID251 (lazy)
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-
-    states = list(meshes)
-    fig = Figure(figsize=(5.2 * len(PREVIEW_VIEWS), 4.8 * len(states)), dpi=100)
-    lo = np.min([m.bounds[0] for st in meshes.values() for m in st.values()], axis=0)
-    hi = np.max([m.bounds[1] for st in meshes.values() for m in st.values()], axis=0)
-    mid, half = (lo + hi) / 2, np.max(hi - lo) / 2
-    light = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
-    for row, st in enumerate(states):
-        tris, fcs = [], []
-        for name, mesh in meshes[st].items():
-            shade = 0.45 + 0.55 * np.abs(mesh.face_normals @ light)
-            rgba = np.array(colors[name], float)
-            fc = np.clip(rgba[None, :3] * shade[:, None], 0, 1)
-            tris.append(mesh.triangles)
-            fcs.append(np.c_[fc, np.full(len(fc), rgba[3])])
-        tri, fc = np.concatenate(tris), np.concatenate(fcs)
-        for col, (elev, azim, label) in enumerate(PREVIEW_VIEWS):
-            ax = fig.add_subplot(len(states), len(PREVIEW_VIEWS), row * len(PREVIEW_VIEWS) + col + 1,
-                                 projection="3d")
-            ax.add_collection3d(Poly3DCollection(tri, facecolors=fc, edgecolors="none"))
-            for i, setter in enumerate((ax.set_xlim, ax.set_ylim, ax.set_zlim)):
-                setter(mid[i] - half, mid[i] + half)
-            ax.set_box_aspect((1, 1, 1))
-            ax.view_init(elev=elev, azim=azim)
-            ax.set_xlabel("x [mm]")
-            ax.set_ylabel("y [mm]")
-            if elev < 90:
-                ax.set_zlabel("z [mm]")
-            else:
-                ax.set_zticks([])
-            ax.set_title(f"{title}: {st}, {label}", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path)
-
-
 def _bom_markdown(name: str, bom: list[dict[str, Any]], pieces: list[dict[str, Any]],
                   P: MountParams, refused: list[dict[str, str]]) -> str:
     """The bill of materials and the print list as Markdown (``bom.md``)."""
@@ -202,7 +150,6 @@ def export_cad(design: Any, out_dir: str | Path = "cad_out", *, state: str = "bo
     Manifest
     """
     import cadquery as cq  # noqa: TID251 (lazy: only when CAD is asked for)
-    import trimesh
 
     from ..errors import ParameterError
 
@@ -259,7 +206,7 @@ def export_cad(design: Any, out_dir: str | Path = "cad_out", *, state: str = "bo
             cq.exporters.export(shape, str(folder / rel), tolerance=tol, angularTolerance=atol)
             files.append(rel)
             if preview:
-                meshes[st][name] = trimesh.load(str(folder / rel), force="mesh")
+                meshes[st][name] = read_stl_triangles(folder / rel)
         tick(f"meshes {st}")
 
     # printable pieces: split to fit the bed, each in its print orientation, STEP products
@@ -284,7 +231,7 @@ def export_cad(design: Any, out_dir: str | Path = "cad_out", *, state: str = "bo
 
     if preview:
         colors = {p.name: p.color for p in model.parts}
-        _render_preview(meshes, colors, folder / "preview.png", design.spec.name)
+        render_preview(meshes, colors, folder / "preview.png", design.spec.name)
         files.append("preview.png")
     tick("preview")
 

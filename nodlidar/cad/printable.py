@@ -80,9 +80,29 @@ def fits_bed(w: float, d: float, params: MountParams) -> bool:
 
 
 def _points(shape, tol: float = 0.2) -> np.ndarray:
-    """Surface points of a shape (its tessellation's vertices), ``(n, 3)`` mm."""
-    verts, _ = shape.tessellate(tol)
-    return np.array([v.toTuple() for v in verts])
+    """Surface points of a shape (its tessellation's vertices), ``(n, 3)`` mm.
+
+    The vertices of ``shape.tessellate(tol)`` in the same order and bits, read straight
+    from each face's triangulation: no cadquery ``Vector`` per vertex (that loop was most
+    of ``nodlidar cad``'s print-piece time, issue 16); a face with a location is moved by
+    OCCT exactly as ``tessellate`` moves it.
+    """
+    from OCP.BRep import BRep_Tool
+    from OCP.TopLoc import TopLoc_Location
+
+    shape.mesh(tol)  # what tessellate() meshes (angular tolerance 0.1)
+    out = []
+    for f in shape.Faces():
+        loc = TopLoc_Location()
+        poly = BRep_Tool.Triangulation_s(f.wrapped, loc)
+        if poly is None:
+            continue
+        nodes = (poly.Node(i) for i in range(1, poly.NbNodes() + 1))
+        if not loc.IsIdentity():
+            trsf = loc.Transformation()
+            nodes = (p.Transformed(trsf) for p in nodes)
+        out += [(p.X(), p.Y(), p.Z()) for p in nodes]
+    return np.array(out)
 
 
 def _rot_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
