@@ -96,6 +96,7 @@ __all__ = [
     "ToleranceResult",
     "monte_carlo",
     "dask_map",
+    "check_scheduler",
     "SensitivityResult",
     "sensitivities",
     "PARAMETERS",
@@ -750,7 +751,7 @@ def _workers_ignore_sigint():
 SCHEDULER_TIMEOUT_S = 5.0
 
 
-def _check_scheduler(address: Any, timeout_s: float = SCHEDULER_TIMEOUT_S) -> None:
+def check_scheduler(address: Any, timeout_s: float = SCHEDULER_TIMEOUT_S) -> None:
     """Refuse, within about ``timeout_s``, a scheduler address that is malformed, not
     reachable or not a Dask scheduler.
 
@@ -796,6 +797,10 @@ def _check_scheduler(address: Any, timeout_s: float = SCHEDULER_TIMEOUT_S) -> No
         raise ParameterError("scheduler", address, f"{allowed} (something else answers there)")
 
 
+#: The old private name (commands imported it before it was public).
+_check_scheduler = check_scheduler
+
+
 def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
     """Yield ``(chunk index, result)`` as chunks finish on a Dask cluster."""
     yield from dask_map(_run_chunk, prob, list(zip(sizes, seeds, strict=True)), workers=workers,
@@ -820,7 +825,7 @@ def dask_map(fn, shared, args, *, workers=None, scheduler=None, client=None, pro
     try:
         if client is None:
             if scheduler is not None:
-                _check_scheduler(scheduler)
+                check_scheduler(scheduler)
                 try:
                     client = own_client = Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
                 except (OSError, TimeoutError) as exc:  # CommClosedError is an OSError

@@ -41,7 +41,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from ..analysis.explore import Sweep, explore
-    from ..analysis.tolerance import _check_scheduler
+    from ..analysis.tolerance import check_scheduler
     from ..errors import ParameterError
     from ..spec import load_design
     from ._args import check_output_path
@@ -57,7 +57,7 @@ def run(args) -> int:
                              "--force to overwrite it)")
     if args.scheduler is not None:
         try:  # before any work: one line within a few seconds
-            _check_scheduler(args.scheduler)
+            check_scheduler(args.scheduler)
         except ParameterError as exc:
             raise ParameterError("--scheduler", exc.value, exc.allowed) from None
     progress, close = tqdm_progress("designs")

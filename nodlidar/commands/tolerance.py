@@ -43,10 +43,10 @@ def check_monte_carlo_options(args) -> None:
         raise ParameterError("--workers", args.workers, "not with --scheduler (its workers "
                                                         "run the chunks)")
     if args.scheduler is not None:
-        from ..analysis.tolerance import _check_scheduler
+        from ..analysis.tolerance import check_scheduler
 
         try:  # before any work (and the progress bar): one line within a few seconds
-            _check_scheduler(args.scheduler)
+            check_scheduler(args.scheduler)
         except ParameterError as exc:
             raise ParameterError("--scheduler", exc.value, exc.allowed) from None
 
