@@ -141,7 +141,7 @@ def _footprint(design, margin_mm: float) -> tuple[float, float]:
 
 def evaluate_design(spec: DesignSpec) -> dict[str, Any]:
     """Solve and trace one design; the row of :func:`explore` (without the swept values)."""
-    from ..geometry import arc_point, bearing_of, wrap_angle
+    from ..geometry import arc_point, bearing_of, directions_from_bearings, wrap_angle
     from ..solver import solve
     from ..verify import trace_beams, verify
 
@@ -171,7 +171,7 @@ def evaluate_design(spec: DesignSpec) -> dict[str, Any]:
     row["max_error_deg"] = float(e.max()) if e.size else math.nan
     lid = design.lidar
     th = lid.bearing_from_step(lid.steps)
-    dirs = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], -1)
+    dirs = directions_from_bearings(th)
     hit, t, out, _ = trace_beams(design.patches(), dirs, lid.range_max_m, lid.housing_radius_m)
     start = np.where(np.isfinite(t), t, 0.0)[:, None] * dirs
     for r in EXPLORE_RANGES_M:
