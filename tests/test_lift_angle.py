@@ -262,3 +262,23 @@ def test_session_profiles_are_set_by_open(lift_toml):
         s.nod_profile()
     with pytest.raises(DeviceError, match="session is not open"):
         s.info()
+
+
+def test_one_sided_design_gets_a_profile_for_each_servo(tmp_path):
+    """A design with mirrors on the left only (a FoV split the spec allows): the left servo's
+    profile is the design's; the right side has no carrier, so for_design refuses it, and
+    lift_profiles gives its servo the left's travel mirrored (a bus still has servo 3)."""
+    text = PAPER.read_text().replace('name = "urg04lx-paper"', 'name = "left-only"', 1)
+    layout = ("front_window_steps = [271, 498]\n[[layout.side_windows]]\nsteps = [499, 725]\n"
+              "mirrors = 2\noffsets = [1, 2]\n")
+    assert text.count("mirrors_per_side = 2\n") == 1
+    text = text.replace("mirrors_per_side = 2\n", "mirrors_per_side = 2\n" + layout, 1)
+    (tmp_path / "left-only.toml").write_text(text)
+    design = solve(load_design(tmp_path / "left-only.toml"))
+    assert {m.side for m in design.mirrors} == {"L"}
+    left, right = lift_profiles(design)
+    assert left == MirrorLiftProfile.for_design(design, "left")
+    assert_allclose([left.lifted_rad, right.lifted_rad], [-math.pi / 2, math.pi / 2],
+                    rtol=0, atol=1e-15)
+    with pytest.raises(ParameterError, match="a side with mirrors"):
+        MirrorLiftProfile.for_design(design, "right")
