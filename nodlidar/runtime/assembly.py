@@ -33,7 +33,7 @@ from ..beams import DIRECT, BeamModel  # noqa: F401  (BeamModel: type of fields)
 from ..dynamixel import RAD_PER_TICK
 from ..errors import ParameterError, require
 from ..frames import check_transform, refuse_renamed
-from ..geometry import TOL, rotate_about_axis
+from ..geometry import CLEAR, TOL, rotate_about_axis
 from .servo_angles import MirrorLiftProfile, interpolate_angle, lift_profiles
 
 if TYPE_CHECKING:
@@ -373,7 +373,7 @@ class AssemblyModel:
         v = verify(design, perts)
         deployed = BeamModel.build(design.lidar, design.patches(perts), v.hit,
                                    design.spec.nod.pivot_m)
-        clear = np.asarray(v.blocker == -1)
+        clear = np.asarray(v.blocker == CLEAR)
         if len(ambiguous_steps):
             amb = np.asarray(ambiguous_steps, dtype=int)
             design.lidar.check_step(amb, "ambiguous_steps")
