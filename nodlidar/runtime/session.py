@@ -77,6 +77,10 @@ class Capture:
         The lift servos' profiles (None: the design's, as :func:`assemble` takes them).
     t_start_s, t_end_s : float
         The nod ramp captured (sweep) or the capture's span.
+    ticks_ms : dict
+        ``nod`` / ... -> (k,) int: each sample's servo realtime tick [ms, modulo 32768],
+        the servo's own time of the READ (the joints' ``t_s`` is the host's stamp, the
+        middle of the transaction) - what a check of the stamps compares with.
     """
 
     scans: list
@@ -85,6 +89,7 @@ class Capture:
     lift_right: MirrorLiftProfile | None = None
     t_start_s: float = float("nan")
     t_end_s: float = float("nan")
+    ticks_ms: dict[str, np.ndarray] = field(default_factory=dict)
 
     def assemble(self, model: AssemblyModel, **kw) -> PointCloud:
         """Assemble every scan (``kw``: frame, robot_from_sensor, world_from_robot...)."""
@@ -320,14 +325,15 @@ class Session:
                     s.stop()
         _raise_sampler_error(samplers)
         self.last_turns = list(nod.turns)
-        joints = {}
+        joints, ticks = {}, {}
         for name, s in samplers.items():
             smp = s.samples()
             joints[name] = (smp.host_time_s, smp.angle_rad)
+            ticks[name] = smp.tick_ms
         if samplers["nod"].buffer.total < 2:
             raise DeviceError("no nod servo samples were read; is the servo bus connected?")
         return Capture(scans if keep else [], joints, self.lift_left, self.lift_right, t0,
-                       self.time_source())
+                       self.time_source(), ticks)
 
     def sweep(self, *, lift: bool = False, timeout_s: float | None = None) -> Capture:
         """One full nod ramp (lower -> upper pitch limit); progress on the log.
@@ -358,7 +364,7 @@ class Session:
         # (goal upper), [2] = its end (goal flipped back to lower)
         t_a, t_b = self.last_turns[1][0], self.last_turns[2][0]
         keep = [s for s in cap.scans if t_a - period <= s.stamp_s <= t_b]
-        return Capture(keep, cap.joints, cap.lift_left, cap.lift_right, t_a, t_b)
+        return Capture(keep, cap.joints, cap.lift_left, cap.lift_right, t_a, t_b, cap.ticks_ms)
 
 
 class _ScanWindow:
