@@ -35,6 +35,7 @@ simulated sensor stands in, facing a wall at each ``--distance``/``--yaw-deg`` i
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import sys
@@ -49,7 +50,7 @@ YAW_MAX_DEG = 59.9
 ORIENTATIONS_MAX = 12
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("calibrate", help="calibrate the mirrors against a flat wall",
                        description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
     src = p.add_mutually_exclusive_group(required=True)
@@ -216,7 +217,7 @@ def _check_options(args) -> None:
         raise ParameterError("--model", "paper", "exact with --fit-range-offset/--fit-range-scale")
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     import numpy as np  # here, not at module level: --help imports no numpy
 
     from ..calibration.calfile import calibration_from_result, write_calibration

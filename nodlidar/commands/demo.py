@@ -15,6 +15,7 @@ commands, run in process.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import time
@@ -23,7 +24,7 @@ from pathlib import Path
 from ._runtime_args import add_design_arg
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="run the main job on the paper's build (simulated sensor)",
                        description=__doc__)
     add_design_arg(p)
@@ -67,7 +68,7 @@ def _short(path) -> str:
     return str(path) if rel.startswith("..") else rel
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from ..designio import mirror_table
     from ..solver import solve
     from ..spec import design_to_toml, load_design

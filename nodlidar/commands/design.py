@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from typing import Any
@@ -9,7 +10,7 @@ from typing import Any
 from ._args import add_force_arg
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("design", help="solve and verify a design file; print the mirror table",
                        description=__doc__)
     p.add_argument("design", help="design TOML file, e.g. design/urg04lx-paper.toml")
@@ -41,7 +42,7 @@ def main_table(design) -> str:
     return _fmt_table(mirror_table(design))
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ..designio import mirror_table, paper_comparison

@@ -7,6 +7,7 @@ and last beam on arcs of the given radii (paper eq. 1, Figs 6-7).
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 
@@ -14,7 +15,7 @@ import sys
 MAX_RANGE_M = 1000.0
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("drift", help="bearing of each mirror's first/last beam vs range",
                        description=__doc__)
     p.add_argument("design", help="design TOML file, e.g. design/urg04lx-paper.toml")
@@ -25,7 +26,7 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from ..analysis.drift import bearing_drift
     from ..solver import solve
     from ..spec import load_design

@@ -11,6 +11,7 @@ fresh from the factory (clients switch it with ``SCIP2.0``).
 
 from __future__ import annotations
 
+import argparse
 import signal
 import sys
 import threading
@@ -21,7 +22,7 @@ from ._runtime_args import add_design_arg
 MAX_RATE = 1000.0  # simulated seconds per wall second: beyond, scans come faster than any host reads
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("emulate", help="serve a simulated lidar + servo bus (pty or TCP)",
                        description=__doc__)
     add_design_arg(p)
@@ -49,7 +50,7 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     import json
 
     from ..errors import ParameterError

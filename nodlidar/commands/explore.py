@@ -12,13 +12,14 @@ process, large ones on a local Dask cluster (``--workers``) or an existing one
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 
 from ._args import add_force_arg, bounded_int
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("explore", help="solve and verify a sweep of designs; Pareto plots",
                        description=__doc__)
     p.add_argument("design", help="base design TOML file, e.g. design/urg04lx-paper.toml")
@@ -37,7 +38,7 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ..analysis.explore import Sweep, explore

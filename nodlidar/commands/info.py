@@ -6,12 +6,13 @@ that.
 
 from __future__ import annotations
 
+import argparse
 import json
 
 from ._runtime_args import add_device_args, session_from_args
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="device info: lidar VV/PP/II and the servos found",
                        description=__doc__)
     add_device_args(p, design=False, scans=False)
@@ -23,7 +24,7 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     if args.port is not None and args.servo_port is None:
         info = _lidar_only(args.port)  # `nodlidar info --port URL`: just the lidar
     else:

@@ -13,6 +13,7 @@ error (disk full) is one line and exit 1; the scans committed before are kept.
 
 from __future__ import annotations
 
+import argparse
 import json
 
 from ..errors import ParameterError
@@ -23,7 +24,7 @@ from ._runtime_args import add_device_args, add_frame_args, check_out, frame_kwa
 _BAG_FILES = ("metadata.yaml", ".mcap", ".db3", ".db3-journal", ".db3-wal", ".db3-shm", ".tmp")
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("record", help="record scans + servo angles to a ROS 2 bag",
                        description=__doc__)
     add_device_args(p)
@@ -56,7 +57,7 @@ def _check_bag_folder(d) -> None:
                              "bag folder (this one holds other files)")
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     import shutil
     import sys
 

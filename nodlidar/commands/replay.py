@@ -9,6 +9,7 @@ decoded are skipped and counted: a warning and exit 0, or exit 2 with ``--strict
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 
@@ -17,7 +18,7 @@ from ._args import add_force_arg
 from ._runtime_args import add_frame_args, check_out, frame_kwargs
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="assemble a recorded bag into a point cloud",
                        description=__doc__)
     p.add_argument("bag", help="bag directory written by 'nodlidar record'")
@@ -32,7 +33,7 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from ..runtime.bag import replay_bag
     from ..runtime.cloud import write_cloud
 

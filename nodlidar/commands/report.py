@@ -8,11 +8,13 @@ other placement method, and writes ``report.html``, ``report.md`` (figures in
 
 from __future__ import annotations
 
+import argparse
+
 from .._light import MAX_SAMPLES  # (not analysis.tolerance: --help imports no numpy)
 from ._args import add_force_arg, bounded_int
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="write the design report (HTML + Markdown)",
                        description=__doc__)
     p.add_argument("design", help="design TOML file, e.g. design/urg04lx-paper.toml")
@@ -54,7 +56,7 @@ def tqdm_progress(desc: str):
     return progress, close
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from ..analysis.report import compute_report, default_out_dir, write_report
     from ..spec import load_design
     from ._args import check_output_path

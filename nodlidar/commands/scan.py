@@ -7,6 +7,7 @@ assembles every beam with its own time and nod angle (mirrors deployed, or lifte
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from ._args import add_force_arg, check_output_path
 from ._runtime_args import add_device_args, add_frame_args, check_out, frame_kwargs, session_from_args
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("scan", help="one full nod sweep -> PLY/PCD point cloud", description=__doc__)
     add_device_args(p)
     add_frame_args(p)
@@ -28,7 +29,7 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from ..runtime.cloud import write_cloud
 
     check_out(args.out)

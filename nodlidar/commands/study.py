@@ -15,6 +15,7 @@ switches, final errors and GOSPA (definitions in :mod:`nodlidar.tracking.evaluat
 
 from __future__ import annotations
 
+import argparse
 import math
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from ._args import add_force_arg
 from ._runtime_args import add_design_arg
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("study", help="mirror vs no-mirror tracking study (paper Section VI)",
                        description=__doc__)
     p.add_argument("which", choices=["mirrors"], help="the study to run")
@@ -45,7 +46,7 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from ..errors import require
     from ..solver import solve
     from ..spec import load_design

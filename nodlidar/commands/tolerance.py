@@ -8,6 +8,7 @@ at D. Results depend only on the seed (and chunk size), not on the number of wor
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 
@@ -15,7 +16,7 @@ from .._light import MAX_SAMPLES  # (not analysis.tolerance: --help imports no n
 from ._args import bounded_int
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("tolerance", help="Monte Carlo tolerance analysis and sensitivities",
                        description=__doc__)
     p.add_argument("design", help="design TOML file")
@@ -51,7 +52,7 @@ def check_monte_carlo_options(args) -> None:
             raise ParameterError("--scheduler", exc.value, exc.allowed) from None
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from ..analysis.tolerance import monte_carlo, sensitivities
     from ..errors import ParameterError
     from ..solver import solve

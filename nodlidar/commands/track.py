@@ -23,6 +23,7 @@ and update). Recordings and live scans are in the sensor base frame raised by
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import sys
@@ -30,7 +31,7 @@ import sys
 from ._runtime_args import add_device_args, session_from_args
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     from .._light import DEFAULT_SENSOR_HEIGHT_M  # (--help imports no numpy)
 
     p = sub.add_parser("track", help="detect and track moving objects (recording, live or simulator)",
@@ -97,7 +98,7 @@ MAX_SIM_SCANS = 20_000     # simulated up front: ~35 min of sensor time
 MAX_LIVE_SCANS = 100_000   # 2.8 h at 10 Hz
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from ..errors import require
     from ..solver import solve
     from ..spec import load_design

@@ -14,6 +14,7 @@ server binds to 127.0.0.1 unless --host says otherwise.
 
 from __future__ import annotations
 
+import argparse
 import json
 import signal
 import threading
@@ -23,7 +24,7 @@ from ._output import status
 from ._runtime_args import add_device_args, check_sim_options, session_from_args
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("view", help="live 3D view in Foxglove (cloud, mirrors, tracks)",
                        description=__doc__)
     add_device_args(p)
@@ -53,7 +54,7 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from ..errors import ParameterError
     from ..live.view import FoxgloveSink, run_view
 
