@@ -31,6 +31,8 @@ demo: $(STAMP)
 test: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m pytest -q
 
+# everything but the tests marked slow (tests/conftest.py lists the end-to-end ones): under a
+# minute on an idle 2-core machine; `make test` runs them all
 test-fast: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m pytest -q -m "not slow"
 
