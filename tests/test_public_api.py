@@ -34,7 +34,6 @@ CLI_PACKAGE = "nodlidar.commands"
 #: session 20: these files were being edited by others). The test fails on any new one;
 #: an entry fixed in its module simply stops mattering (and should be deleted here).
 PENDING: set[tuple[str, str]] = {
-    ("nodlidar.analysis.tolerance", "_check_scheduler"),  # commands/tolerance, explore
     ("nodlidar.tracking.tracker", "_stamp"),  # tracking/evaluate
     ("nodlidar.tracking.voxels", "WindowVoxelMap"),  # tracking/segment
 }
