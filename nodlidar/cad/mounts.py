@@ -39,10 +39,14 @@ Parts
     plane, where the stop stands in front of the lower part of that glass, below the beam
     band, as a lip that also keeps its bottom in the pocket (that glass goes in from
     above). The cut stop must still meet its glass end over ``end_stop_depth_mm`` and be
-    ``min_wall_mm`` wide, else the build is refused naming both mirrors. An unchained
-    glass's back plate is cut at each end to the glass's shadow as seen from the lidar
-    (the ray from the optical centre tangent to the glass end), so that the beams passing
-    between the glasses do not graze it. Chained sides are built exactly as before.
+    ``min_wall_mm`` wide, else the build is refused naming both mirrors. Where a lidar
+    beam passes beyond an unchained glass's end through its back plate (the paper-exact
+    build's steps 612..615 between L1 and L2), the plate is cut to the glass's shadow (the
+    ray from the optical centre tangent to the glass end) and the acute wedge this leaves
+    is blunted to ``min_wall_mm``: the datum then stops ``min_wall / tan(a)`` short of
+    that glass end (0.65 mm there), which overhangs its bonded face. The glass's own end
+    face (its thickness, which the solver's faces do not have) still meets such beams.
+    Chained sides are built exactly as before.
 ``glass_<mirror>`` (reference)
     The mirror glass: its front face *is* the solved :class:`~nodlidar.geometry.MirrorPatch`.
 ``servo_<side>``, ``lidar`` (reference)
@@ -257,25 +261,74 @@ def _stop_polygon(end: np.ndarray, away: np.ndarray, n: np.ndarray, gap: float,
     return np.array([a0 - front * n, a1 - front * n, a1 - back * n, a0 - back * n])[:, :2]
 
 
-def _in_shadow(poly: np.ndarray, glass: np.ndarray) -> np.ndarray:
+def _blunt(poly: np.ndarray, min_wall: float) -> np.ndarray | None:
+    """The convex plan polygon ``poly (k, 2)`` [mm] with every acute corner cut off, so
+    that no printed wedge is thinner than ``min_wall`` mm: at a corner of interior angle
+    ``a < 90 deg``, a cut square to the longer of its two edges, ``min_wall / tan(a)``
+    from the corner, leaves a right-angled corner ``min_wall`` thick (and an obtuse one).
+    None if nothing is left (the polygon is thinner than ``min_wall`` everywhere)."""
+    q = poly
+    for _ in range(2 * len(poly)):              # each cut removes one acute corner
+        k = len(q)
+        for i in range(k):
+            e1, e2 = q[i - 1] - q[i], q[(i + 1) % k] - q[i]
+            l1, l2 = np.linalg.norm(e1), np.linalg.norm(e2)
+            cos_a = float(e1 @ e2) / (l1 * l2)
+            if cos_a > 1e-9:                    # acute
+                e = e1 / l1 if l1 >= l2 else e2 / l2
+                x = min_wall * cos_a / np.sqrt(1.0 - cos_a ** 2)   # min_wall / tan(a)
+                cut = _clip_halfplane(q, q[i] + x * e, e)
+                if cut is None:
+                    return None
+                q = cut
+                break
+        else:
+            return q
+    return q  # pragma: no cover - the loop above ends by its else clause
+
+
+def _angle_from(mid: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Signed angle [rad] of the plan directions ``v (..., 2)`` from the direction ``mid``."""
+    return np.arctan2(mid[0] * v[..., 1] - mid[1] * v[..., 0], v @ mid)
+
+
+def _in_shadow(poly: np.ndarray, glass: np.ndarray, bearings: np.ndarray,
+               min_wall: float, name: str) -> np.ndarray:
     """The plan polygon ``poly (k, 2)`` [mm] (a back plate) cut to the angular shadow of
     its ``glass (4, 2)`` (face ends, then back corners) as seen from the lidar's optical
-    centre (the head frame's origin): at each end, by the ray from the origin through the
-    end's corner (front or back) farthest round from the glass's middle, the tangent to
-    the glass there. What is cut away stood beyond the glass end, where a beam passing the
-    end would meet it; nothing the glass lies on is removed."""
+    centre (the head frame's origin), where a beam would otherwise meet it.
+
+    At each end the tangent to the glass is the ray from the origin through the end's
+    corner (front or back) farthest round from the glass's middle. If one of the lidar's
+    ``bearings`` [rad] passes beyond that tangent through the plate (a beam between two
+    unchained glasses), the plate is cut along the tangent and the acute wedge this leaves
+    at the datum is blunted (:func:`_blunt`): the datum then stops ``min_wall / tan(a)``
+    short of that glass end (``a``: the angle between the datum and the tangent), where
+    the glass overhangs its bonded face. Otherwise the plate is returned unchanged."""
     mid = glass.mean(axis=0)
-    q: np.ndarray | None = poly
+    beam = _angle_from(mid, np.c_[np.cos(bearings), np.sin(bearings)])
+    plate = _angle_from(mid, poly)
+    q = poly
     for pair in ((0, 3), (1, 2)):                     # (face, back) corner of each end
         c = glass[list(pair)]
-        ang = np.arctan2(mid[0] * c[:, 1] - mid[1] * c[:, 0], c @ mid)
+        ang = _angle_from(mid, c)
         p = c[int(np.argmax(np.abs(ang)))]
+        tangent = ang[int(np.argmax(np.abs(ang)))]
+        sgn = np.sign(tangent)
+        beyond = sgn * plate > sgn * tangent
+        if not beyond.any():
+            continue
+        far = np.max(sgn * plate[beyond])
+        if not np.any((sgn * beam > sgn * tangent) & (sgn * beam < far)):
+            continue
         w = np.array([-p[1], p[0]])
         w = w if w @ mid >= 0 else -w
-        if q is not None and np.all(glass @ w >= -1e-9):
-            q = _clip_halfplane(q, np.zeros(2), w)
-    if q is None:   # pragma: no cover - a plate wider than its glass's shadow cannot vanish
-        raise CadBuildError("a back plate lies wholly outside its glass's shadow")
+        cut = _clip_halfplane(q, np.zeros(2), w)
+        blunt = None if cut is None else _blunt(cut, min_wall)
+        if blunt is None:  # pragma: no cover - the plate is as long as its glass
+            raise CadBuildError(f"the back plate of {name} cut to the glass's shadow (beams "
+                                f"pass beside its ends) is thinner than cad.min_wall_mm")
+        q = blunt
     return q
 
 
@@ -332,6 +385,10 @@ def _stop_beside(stop: np.ndarray, j: int, which: str, k: int, ms: list[Any],
         q = _clip_halfplane(stop, p0, w)
         if q is None:
             reasons.append("nothing is left")
+            continue
+        q = _blunt(q, params.min_wall_mm)
+        if q is None:
+            reasons.append(f"is thinner than cad.min_wall_mm = {params.min_wall_mm:g} mm")
             continue
         why = _stop_fails(q, j, which, ends, dirs, normals, gap, params, t)
         if not why:
@@ -410,9 +467,12 @@ def side_layouts(design: Design, params: MountParams) -> dict[str, SideLayout]:
             # each back plate is cut at both ends to its glass's shadow as seen from
             # the lidar: unchained glass leaves beams through the gaps between them,
             # which must not graze a plate standing out beyond the glass end
+            bearings = design.lidar.bearing_from_step(design.lidar.steps)
             polys = tuple(_in_shadow(np.array([lo - t * n, hi - t * n, hi - (t + w) * n,
-                                               lo - (t + w) * n])[:, :2], gp)
-                          for lo, hi, n, gp in zip(los, his, normals, glass_plans, strict=True))
+                                               lo - (t + w) * n])[:, :2], gp, bearings,
+                                     params.min_wall_mm, m.name)
+                          for lo, hi, n, gp, m in zip(los, his, normals, glass_plans, ms,
+                                                      strict=True))
             free = [(j, e) for j in range(len(ms)) for e in ("outer", "inner")]
         for j, which in free:
             o, i = ends[j]
