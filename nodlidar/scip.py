@@ -403,7 +403,7 @@ def _any_layout(a: np.ndarray) -> _Layout:
 
 
 #: content sum (mod 256) -> the sum character plus LF (0x0A) that must follow it
-_SUM_LF = ((np.arange(256) & 0x3F) + _CHAR0 + 0x0A).astype(np.uint8)
+_SUM_LF_TABLE = bytes(((np.arange(256) & 0x3F) + _CHAR0 + 0x0A).astype(np.uint8))
 
 
 def _verify_block(buf: bytes, start: int = 0, end: int | None = None) -> np.ndarray:
@@ -411,18 +411,19 @@ def _verify_block(buf: bytes, start: int = 0, end: int | None = None) -> np.ndar
 
     The block is ``buf[start:end]`` (read in place, not copied). Returns the joined content
     (sums and LFs removed) as a uint8 array. The device's layout is recognised with a few
-    bytes operations and its index arrays are cached, so a scan costs four numpy calls:
-    one ``reduceat`` for every line's sums, a table look-up of the wanted sum characters,
-    a comparison of bytes, one gather of the content.
+    bytes operations and its index arrays are cached, so a scan costs three numpy calls:
+    a view, one ``reduceat`` for every line's sums (compared as bytes, through a
+    translation table), one gather of the content.
     """
     end = len(buf) if end is None else end
-    a = np.frombuffer(buf, dtype=np.uint8, count=end - start, offset=start)
+    a = np.frombuffer(buf, dtype=np.uint8)[start:end]
     if a.size == 0:
         return a
     lay = _device_layout(buf, start, end) or _any_layout(a)
-    # mod 256 sums suffice: the checksum is mod 64
-    r = np.add.reduceat(a, lay.bounds, dtype=np.uint8)
-    if _SUM_LF.take(r[0::2]).tobytes() != r[1::2].tobytes():
+    # each line's content sum and its sum char + LF; mod 256 suffices (the sum is mod 64);
+    # the comparison is on bytes: a translate() by the table is the wanted sum + LF
+    r = np.add.reduceat(a, lay.bounds, dtype=np.uint8).tobytes()
+    if r[0::2].translate(_SUM_LF_TABLE) != r[1::2]:
         _raise_checksum(a, lay)
     return a.take(lay.content)
 
@@ -879,36 +880,41 @@ def _echo_ok(line: bytes) -> bool:
     return _PRINTABLE_RE.fullmatch(line) is not None
 
 
-def _parse_parts(message: bytes) -> tuple[bytes, bytes, int, str, str, str, bool,
+def _parse_parts(message: bytes) -> tuple[bytes, bytes, int, int, str, str, str, bool,
                                            np.ndarray | None]:
-    """:func:`parse_reply` without building the body tuple.
+    """:func:`parse_reply` without building the body tuple (nor copying the message).
 
-    Returns ``(msg, text, body_at, echo, code, status, scip1, payload)``: ``text`` is the
-    message without its final ``LF LF``, the body lines start at ``text[body_at:]``
+    Returns ``(msg, buf, n, body_at, echo, code, status, scip1, payload)``: the message
+    without its final ``LF LF`` is ``buf[:n]``, its body lines start at ``buf[body_at:n]``
     (``body_at`` is -1 if there are none), ``code`` is the echo's command code.
     """
     msg = bytes(message)
-    text = msg[:-2] if msg.endswith(b"\n\n") else msg.rstrip(b"\n")
-    i = text.find(LF)
+    in_place = msg.endswith(b"\n\n")  # then buf[n] is the first LF of the final LF LF
+    if in_place:
+        buf, n = msg, len(msg) - 2
+    else:
+        buf = msg.rstrip(b"\n")
+        n = len(buf)
+    i = buf.find(LF, 0, n)
     if i < 0:
         raise ProtocolError(
             f"scip message = {msg[:40]!r} is invalid; allowed: echo, status line, LF LF"
         )
-    if not _PRINTABLE_RE.fullmatch(text, 0, i):
-        raise ProtocolError(f"scip echo = {text[:i][:40]!r} is invalid; allowed: printable ASCII")
-    j = text.find(LF, i + 1)
-    status, scip1 = parse_status_line(text[i + 1:j] if j >= 0 else text[i + 1:])
-    echo = text[:i].decode("ascii")
+    if not _PRINTABLE_RE.fullmatch(buf, 0, i):
+        raise ProtocolError(f"scip echo = {buf[:i][:40]!r} is invalid; allowed: printable ASCII")
+    j = buf.find(LF, i + 1, n)
+    status, scip1 = parse_status_line(buf[i + 1:j] if j >= 0 else buf[i + 1:n])
+    echo = buf[:i].decode("ascii")
     code = _command_code(echo)
     payload = None
     if not scip1 and code in _STRICT_CODES:
         if j < 0:
             payload = np.zeros(0, dtype=np.uint8)
-        elif len(text) + 2 == len(msg):  # msg is text + LF LF: the block is read in place
-            payload = _verify_block(msg, j + 1, len(text) + 1)
+        elif in_place:  # the block is read where it is, LF-terminated
+            payload = _verify_block(msg, j + 1, n + 1)
         else:
-            payload = _verify_block(text[j + 1:] + LF)
-    return msg, text, (j + 1 if j >= 0 else -1), echo, code, status, scip1, payload
+            payload = _verify_block(buf[j + 1:n] + LF)
+    return msg, buf, n, (j + 1 if j >= 0 else -1), echo, code, status, scip1, payload
 
 
 def parse_reply(message: bytes) -> ScipReply:
@@ -927,8 +933,8 @@ def parse_reply(message: bytes) -> ScipReply:
     ProtocolError
         Anything malformed.
     """
-    msg, text, body_at, echo, _, status, scip1, payload = _parse_parts(message)
-    body = tuple(text[body_at:].split(LF)) if body_at >= 0 else ()
+    msg, buf, n, body_at, echo, _, status, scip1, payload = _parse_parts(message)
+    body = tuple(buf[body_at:n].split(LF)) if body_at >= 0 else ()
     if payload is None and any(len(x) == 0 for x in body):
         raise ProtocolError("scip message has an empty body line; allowed: LF LF only at end")
     return ScipReply(echo=echo, status=status, body=body, scip1=scip1, raw=msg, payload=payload)
@@ -1196,10 +1202,10 @@ def decode_scan(reply: ScipReply | bytes) -> ScanFrame:
     """
     if not isinstance(reply, ScipReply):
         # straight from the bytes: no body tuple, no ScipReply (the hot path of a driver)
-        _, text, at, echo, _, status, _, payload = _parse_parts(reply)
+        _, buf, n, at, echo, _, status, _, payload = _parse_parts(reply)
         if payload is not None:
-            end = text.find(LF, at) if at >= 0 else -1
-            ts_line = b"" if at < 0 else text[at:end] if end >= 0 else text[at:]
+            end = buf.find(LF, at, n) if at >= 0 else -1
+            ts_line = b"" if at < 0 else buf[at:end] if end >= 0 else buf[at:n]
             return _scan_frame(echo, status, at >= 0, ts_line, payload, (), ts_line[:4])
         reply = parse_reply(reply)
     body = reply.body
