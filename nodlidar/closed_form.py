@@ -20,6 +20,7 @@ Eqs. 4-8 (the calibration model) are *not* exact (see :func:`eq4_8_point`).
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = [
     "eq1_bearing_on_arc",
@@ -30,7 +31,8 @@ __all__ = [
 ]
 
 
-def eq1_bearing_on_arc(theta_b, theta_r, oz, D, sign=1):
+def eq1_bearing_on_arc(theta_b: ArrayLike, theta_r: ArrayLike, oz: ArrayLike, D: ArrayLike,
+                       sign: int = 1) -> np.ndarray:
     """Eq. 1: actual bearing [rad] where a reflected beam crosses the arc of radius D.
 
     Parameters
@@ -55,7 +57,8 @@ def eq1_bearing_on_arc(theta_b, theta_r, oz, D, sign=1):
     return theta_b + sign * (2 * theta_r + np.arccos(am / D) - np.pi)
 
 
-def eq1_bearing_from_range(theta_b, theta_r, oz, r, sign=1):
+def eq1_bearing_from_range(theta_b: ArrayLike, theta_r: ArrayLike, oz: ArrayLike, r: ArrayLike,
+                           sign: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 1 for a measured (total path) range ``r`` [m]: bearing of the measured point.
 
     ``ZM = r - OZ``, ``AM = ZM - ZA``, and ``D = |OM| = sqrt(AM^2 + OA^2)``.
@@ -70,7 +73,7 @@ def eq1_bearing_from_range(theta_b, theta_r, oz, r, sign=1):
     return theta_b + sign * (2 * theta_r + np.arccos(am / D) - np.pi), D
 
 
-def eq2_drift(theta_r, oz, D, D_star):
+def eq2_drift(theta_r: ArrayLike, oz: ArrayLike, D: ArrayLike, D_star: ArrayLike) -> np.ndarray:
     """Eq. 2: ``theta(D) - theta(D*)`` [rad] for the same beam at two arc radii (left side).
 
     For a right-side mirror negate the result.
@@ -81,13 +84,15 @@ def eq2_drift(theta_r, oz, D, D_star):
     return np.arccos(am / D) - np.arccos(am_s / D_star)
 
 
-def eq3_separation_change(theta_r1, oz1, theta_r2, oz2, D, D_star):
+def eq3_separation_change(theta_r1: ArrayLike, oz1: ArrayLike, theta_r2: ArrayLike, oz2: ArrayLike,
+                          D: ArrayLike, D_star: ArrayLike) -> np.ndarray:
     """Eq. 3: change of the angular separation of two consecutive reflected beams between
     arc radii D and D* [rad] (left side; negate for the right)."""
     return eq2_drift(theta_r1, oz1, D, D_star) - eq2_drift(theta_r2, oz2, D, D_star)
 
 
-def eq4_8_point(r, theta, alpha, d, h, dalpha=0.0, dbeta=0.0, dd=0.0):
+def eq4_8_point(r: ArrayLike, theta: ArrayLike, alpha: float, d: float, h: float,
+                dalpha: float = 0.0, dbeta: float = 0.0, dd: float = 0.0) -> np.ndarray:
     """Eqs. 4-8 as printed: the paper's point for a reflected range measurement.
 
     Parameters

@@ -26,8 +26,10 @@ import enum
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import overload
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import ParameterError, ProtocolError, require
 
@@ -692,25 +694,49 @@ REALTIME_TICK_MODULO = 32768
 """The realtime tick [ms] counts 0..32767 and wraps."""
 
 
-def ticks_to_rad(ticks):
+@overload
+def ticks_to_rad(ticks: float) -> float: ...
+@overload
+def ticks_to_rad(ticks: np.ndarray) -> np.ndarray: ...
+@overload
+def ticks_to_rad(ticks: ArrayLike) -> float | np.ndarray: ...
+def ticks_to_rad(ticks: ArrayLike) -> float | np.ndarray:
     """Position ticks -> angle [rad] (tick 2048 = 0 rad). Scalars or arrays."""
     out = (np.asarray(ticks, dtype=float) - POSITION_CENTRE_TICKS) * RAD_PER_TICK
     return float(out) if out.ndim == 0 else out
 
 
-def rad_to_ticks(angle_rad):
+@overload
+def rad_to_ticks(angle_rad: float) -> int: ...
+@overload
+def rad_to_ticks(angle_rad: np.ndarray) -> np.ndarray: ...
+@overload
+def rad_to_ticks(angle_rad: ArrayLike) -> int | np.ndarray: ...
+def rad_to_ticks(angle_rad: ArrayLike) -> int | np.ndarray:
     """Angle [rad] -> nearest position tick (int, or int64 array)."""
     out = np.rint(np.asarray(angle_rad, dtype=float) / RAD_PER_TICK) + POSITION_CENTRE_TICKS
     return int(out) if out.ndim == 0 else out.astype(np.int64)
 
 
-def velocity_raw_to_rad_s(raw):
+@overload
+def velocity_raw_to_rad_s(raw: float) -> float: ...
+@overload
+def velocity_raw_to_rad_s(raw: np.ndarray) -> np.ndarray: ...
+@overload
+def velocity_raw_to_rad_s(raw: ArrayLike) -> float | np.ndarray: ...
+def velocity_raw_to_rad_s(raw: ArrayLike) -> float | np.ndarray:
     """Velocity units (0.229 rev/min) -> angular rate [rad/s]. Scalars or arrays."""
     out = np.asarray(raw, dtype=float) * RAD_S_PER_VELOCITY_UNIT
     return float(out) if out.ndim == 0 else out
 
 
-def rad_s_to_velocity_raw(rate_rad_s):
+@overload
+def rad_s_to_velocity_raw(rate_rad_s: float) -> int: ...
+@overload
+def rad_s_to_velocity_raw(rate_rad_s: np.ndarray) -> np.ndarray: ...
+@overload
+def rad_s_to_velocity_raw(rate_rad_s: ArrayLike) -> int | np.ndarray: ...
+def rad_s_to_velocity_raw(rate_rad_s: ArrayLike) -> int | np.ndarray:
     """Angular rate [rad/s] -> nearest velocity unit (int, or int64 array)."""
     out = np.rint(np.asarray(rate_rad_s, dtype=float) / RAD_S_PER_VELOCITY_UNIT)
     return int(out) if out.ndim == 0 else out.astype(np.int64)

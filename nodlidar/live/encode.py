@@ -9,9 +9,12 @@ the floor is z = 0; the tracks live there).
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from foxglove.messages import FrameTransforms, PointCloud, SceneUpdate, Timestamp
 
 __all__ = ["FRAME_WORLD", "FRAME_SENSOR", "FRAME_HEAD", "CLOUD_DTYPE", "CLOUD_FIELDS",
            "pack_points", "point_cloud", "head_transform", "frame_transforms", "mirror_update",
@@ -30,7 +33,7 @@ CLOUD_FIELDS = tuple((name, 4 * i, {"<f4": "Float32", "<i4": "Int32"}[t])
                      for i, (name, t) in enumerate(_LAYOUT))
 
 
-def stamp(t_ns: int):
+def stamp(t_ns: int) -> Timestamp:
     """A foxglove Timestamp from nanoseconds since the epoch."""
     from foxglove.messages import Timestamp
 
@@ -51,7 +54,7 @@ def pack_points(xyz: np.ndarray, range_m: np.ndarray, nod_rad: np.ndarray, mirro
     return out.tobytes()
 
 
-def point_cloud(data: bytes, t_ns: int, frame_id: str = FRAME_SENSOR):
+def point_cloud(data: bytes, t_ns: int, frame_id: str = FRAME_SENSOR) -> PointCloud:
     """A ``foxglove.PointCloud`` of packed :data:`CLOUD_DTYPE` points."""
     from foxglove.messages import PackedElementField, PackedElementFieldNumericType, PointCloud
 
@@ -72,7 +75,8 @@ def head_transform(nod_rad: float, pivot_m: Sequence[float]) -> tuple[np.ndarray
     return t, q
 
 
-def frame_transforms(nod_rad: float, pivot_m: Sequence[float], sensor_height_m: float, t_ns: int):
+def frame_transforms(nod_rad: float, pivot_m: Sequence[float], sensor_height_m: float,
+                     t_ns: int) -> FrameTransforms:
     """``foxglove.FrameTransforms``: world -> sensor (raised by the sensor height) and
     sensor -> head (the current nod)."""
     from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Vector3
@@ -109,7 +113,7 @@ def _pose(p=(0.0, 0.0, 0.0), yaw_rad: float = 0.0):
                                        w=float(np.cos(yaw_rad / 2))))
 
 
-def mirror_update(patches: Iterable[Any], t_ns: int):
+def mirror_update(patches: Iterable[Any], t_ns: int) -> SceneUpdate:
     """``foxglove.SceneUpdate``: one entity per mirror patch (id ``mirror/<name>``), a
     rectangle of two triangles in the ``head`` frame (the four corners of the finite
     patch, :meth:`nodlidar.geometry.MirrorPatch.corners`) and its name, frame-locked so it
@@ -137,7 +141,7 @@ def mirror_update(patches: Iterable[Any], t_ns: int):
 
 
 def track_update(states: Iterable[Any], t_ns: int, *, lifetime_s: float = 2.0,
-                 height_m: float = 1.0):
+                 height_m: float = 1.0) -> SceneUpdate:
     """``foxglove.SceneUpdate``: one entity per alive track (id ``track/<n>``) in the
     ``world`` frame - a cylinder-like box at its ground position, an arrow along its
     heading scaled by the speed (1 m per m/s) and a label; ended tracks are deleted.

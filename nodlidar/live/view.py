@@ -24,12 +24,21 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import require
+from ..errors import DeviceError, require
 from . import encode
+
+if TYPE_CHECKING:
+    from ..design import Design
+    from ..runtime.assembly import AssemblyModel, PointCloud
+    from ..runtime.servo_angles import MirrorLiftProfile
+    from ..runtime.session import Session
+    from ..tracking.recording import LiveScans
+    from ..tracking.segment import OnlineSegmenter
+    from ..tracking.tracker import Tracker
 
 __all__ = ["TOPICS", "FoxgloveSink", "CloudWindow", "ViewStats", "run_view", "build_tracking"]
 
@@ -52,7 +61,7 @@ class CloudWindow:
         self.n = 0          # points held
         self.total = 0      # points ever added
 
-    def add(self, cloud) -> None:
+    def add(self, cloud: PointCloud) -> None:
         """Append a :class:`~nodlidar.runtime.assembly.PointCloud` chunk."""
         n = len(cloud)
         if n == 0:
@@ -122,7 +131,7 @@ class FoxgloveSink:
         host = f"[{self.host}]" if ":" in self.host else self.host
         return f"ws://{host}:{self.server.port}"
 
-    def publish(self, kind: str, msg, t_ns: int) -> None:
+    def publish(self, kind: str, msg: Any, t_ns: int) -> None:
         with self._lock:
             self.channels[kind].log(msg, log_time=t_ns)
             self.messages[kind] += 1
@@ -150,7 +159,16 @@ class ViewStats:
     stats: dict[str, int] = field(default_factory=dict)
 
 
-def build_tracking(session, sensor_height_m: float):
+def _opened(session: Session) -> tuple[Design, AssemblyModel, MirrorLiftProfile, MirrorLiftProfile]:
+    """The design, assembly model and lift profiles of an open session."""
+    s = session
+    if s.design is None or s.model is None or s.lift_left is None or s.lift_right is None:
+        raise DeviceError("the session is not open (use it inside 'with Session(...)')")
+    return s.design, s.model, s.lift_left, s.lift_right
+
+
+def build_tracking(session: Session, sensor_height_m: float) -> tuple[
+        tuple[LiveScans, OnlineSegmenter, Tracker] | None, str | None]:
     """``(live_scans, segmenter, tracker)`` for the session, or ``(None, reason)`` when the
     tracker cannot be built (kept loose: tracking is optional in a view)."""
     try:
@@ -158,9 +176,9 @@ def build_tracking(session, sensor_height_m: float):
         from ..tracking.segment import OnlineSegmenter
         from ..tracking.tracker import Tracker, TrackerConfig
 
-        live = LiveScans(session.model, (session.lift_left, session.lift_right),
-                         sensor_height_m=sensor_height_m)
-        return (live, OnlineSegmenter(range_sigma=session.design.lidar.range_sigma_m),
+        design, model, lift_left, lift_right = _opened(session)
+        live = LiveScans(model, (lift_left, lift_right), sensor_height_m=sensor_height_m)
+        return (live, OnlineSegmenter(range_sigma=design.lidar.range_sigma_m),
                 Tracker(TrackerConfig())), None
     except Exception as exc:   # noqa: BLE001 - any API drift in the tracker: view without tracks
         return None, f"{type(exc).__name__}: {exc}"
@@ -190,7 +208,7 @@ class _TrackWorker(threading.Thread):
                 self.log(f"tracking stopped: {self.error}")
 
 
-def run_view(session, sink: FoxgloveSink, *, duration_s: float | None = None,
+def run_view(session: Session, sink: FoxgloveSink, *, duration_s: float | None = None,
              max_points: int = 200_000, batch_scans: int = 3, cloud_period_s: float = 0.5,
              track: bool = True,
              sensor_height_m: float = 0.4, lift: bool = False,
@@ -210,7 +228,7 @@ def run_view(session, sink: FoxgloveSink, *, duration_s: float | None = None,
     require(max_points >= 1, "--max-points", max_points, ">= 1")
     require(duration_s is None or (math.isfinite(duration_s) and duration_s > 0), "--duration",
             duration_s, "> 0 seconds")
-    design = session.design
+    design, model, lift_left, lift_right = _opened(session)
     pivot = design.spec.nod.pivot_m
     perts = session.calibration.perturbations if session.calibration is not None else None
     patches = design.patches(perts)
@@ -234,7 +252,7 @@ def run_view(session, sink: FoxgloveSink, *, duration_s: float | None = None,
         window.add(chunk)
         publish_cloud()
 
-    assembler = LiveAssembler(session.model, session.lift_left, session.lift_right, on_cloud,
+    assembler = LiveAssembler(model, lift_left, lift_right, on_cloud,
                               batch_scans=batch_scans)
     tracking, why = build_tracking(session, sensor_height_m) if track else (None, "not asked")
     worker = None
