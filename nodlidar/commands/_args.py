@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import ParameterError
@@ -49,7 +50,7 @@ def _to_float(text: str) -> float | None:
 
 
 def bounded_float(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
-                  unit: str = ""):
+                  unit: str = "") -> Callable[[str], float]:
     """argparse ``type=``: a finite float within ``lo .. hi`` (``lo_open``: ``> lo``)."""
     allowed = "a finite number" + _range(lo, hi, lo_open, unit)
 
@@ -72,7 +73,8 @@ def finite_float(text: str) -> float:
     return bounded_float()(text)
 
 
-def bounded_int(lo: int | None = None, hi: int | None = None, *, unit: str = ""):
+def bounded_int(lo: int | None = None, hi: int | None = None, *,
+                unit: str = "") -> Callable[[str], int]:
     """argparse ``type=``: an integer within ``lo .. hi`` (``1e5`` is read as 100000)."""
     allowed = "an integer" + _range(lo, hi, False, unit)
 
@@ -92,7 +94,7 @@ def bounded_int(lo: int | None = None, hi: int | None = None, *, unit: str = "")
     return parse
 
 
-def add_force_arg(p) -> None:
+def add_force_arg(p: argparse.ArgumentParser) -> None:
     """``--force``: overwrite an existing output (the one policy of every command)."""
     p.add_argument("--force", action="store_true", help="overwrite an existing output")
 

@@ -5,9 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ._args import add_force_arg
+
+if TYPE_CHECKING:
+    from ..solver import Design
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -35,7 +38,7 @@ def _fmt_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main_table(design) -> str:
+def main_table(design: Design) -> str:
     """The mirror table of a solved design, as printed by ``nodlidar design``."""
     from ..designio import mirror_table
 

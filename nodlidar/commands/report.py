@@ -9,6 +9,7 @@ other placement method, and writes ``report.html``, ``report.md`` (figures in
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 
 from .._light import MAX_SAMPLES  # (not analysis.tolerance: --help imports no numpy)
 from ._args import add_force_arg, bounded_int
@@ -34,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def tqdm_progress(desc: str):
+def tqdm_progress(desc: str) -> tuple[Callable[[int, int], None], Callable[[], None]]:
     """A ``progress(done, total)`` callback drawing a tqdm bar (CLI only), and its closer."""
     from tqdm import tqdm
 

@@ -31,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def check_monte_carlo_options(args) -> None:
+def check_monte_carlo_options(args: argparse.Namespace) -> None:
     """``--samples``/``--workers``/``--scheduler`` (shared with ``nodlidar report``), checked
     before any work, in the options' own names."""
     from ..errors import ParameterError

@@ -25,6 +25,7 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,6 +39,9 @@ from .faults import FaultConfig
 from .raycast import ScanTruth, SceneSimulator
 from .scene import Scene
 from .scip_emulator import ScipEmulator
+
+if TYPE_CHECKING:
+    from ..design import Design
 
 __all__ = ["SimulatedSensor"]
 
@@ -80,7 +84,7 @@ class SimulatedSensor:
     Nothing starts in the constructor; :meth:`start` (or ``with``) serves both devices.
     """
 
-    def __init__(self, design, scene: Scene | str | None = None, *,
+    def __init__(self, design: Design, scene: Scene | str | None = None, *,
                  perturbations: Mapping[str, Perturbation] | None = None, transport: str = "pty",
                  rate: float = 1.0, noise: bool = True, seed: int = 0,
                  faults: FaultConfig | None = None,
