@@ -89,14 +89,15 @@ class TrackerConfig:
         Constant-velocity process noise: white acceleration spectral density, as a sigma
         [m/s^2 per sqrt(Hz)] (people and robots at walking pace change velocity slowly).
     velocity_fusion : {"kalman", "window", "first"}
-        How the entropy velocity enters the filter. ``"kalman"``: as an independent
-        measurement every scan, noise = the refinement's curvature covariance + the floor
-        (smooths the estimate's scan-to-scan jitter, but successive windows share their
-        scans, so it counts them many times over and the zero-velocity birth prior and the
-        first scans' estimates linger). ``"window"``: each estimate supersedes the previous
-        (the prior's velocity is forgotten; noise = the floor): no lag, the estimator's
-        jitter passes through. ``"first"``: ``"kalman"`` with the birth prior forgotten at
-        the first estimate. docs/tracking.md has the speed x heading grid for each.
+        How the entropy velocity enters the filter. ``"kalman"`` (default): an independent
+        measurement every scan, noise = the refinement's curvature covariance + the floor -
+        it smooths the estimate's scan-to-scan jitter, but successive windows share their
+        scans, so it counts each scan many times over, and the zero-velocity birth prior
+        and the first scans' estimates linger. ``"window"``: each scan's estimate over the
+        track's window supersedes the previous one (the prior's velocity is forgotten;
+        noise = the floor): no lag, but the jitter passes through (slow movers).
+        ``"first"``: ``"kalman"`` with the birth prior forgotten at the first estimate.
+        docs/tracking.md has the measurements of each.
     renyi_method : {"newton", "nelder-mead"}
         Rényi minimiser (:func:`refine_motion`); Newton's method on the closed-form
         derivatives takes a few passes over the pairs instead of ~50 (same minimum within
