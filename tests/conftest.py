@@ -17,7 +17,7 @@ import pytest  # noqa: E402
 #: ones: CLI runs of whole commands, fresh interpreters (import checks, examples,
 #: ``nodlidar emulate``), emulator streams paced in real time, calibration fits and reports
 #: on simulated captures, Dask clusters, fuzzers, first imports of open3d/rosbags. What is
-#: left (~680 tests) took 31 s of CPU with collection: ``make test-fast`` ~35 s when idle.
+#: left (~680 tests) takes ~28 s of CPU with collection: ``make test-fast`` ~30 s when idle.
 #: A name that no longer exists only makes ``make test-fast`` slower: rename it here too.
 SLOW_TESTS: dict[str, tuple[str, ...]] = {
     "test_bag.py": (
@@ -191,6 +191,29 @@ SLOW_FIXTURES: dict[str, tuple[str, ...]] = {
     "test_tracking_recording.py": ("recording",),
     "test_tracking_study.py": ("renyi_study",),
 }
+
+#: Files every test of which is slow by construction (a module-level ``cad`` mark, and no
+#: marks but ``cad``/``slow``): when ``-m`` deselects those tests the file is not even
+#: imported - test_cad.py's cadquery import alone costs 2-4 s of a ``make test-fast``.
+SLOW_FILES = ("test_cad.py",)
+
+
+def _deselects_slow(config: pytest.Config) -> bool:
+    """``-m`` leaves out a test marked slow (and cad), e.g. ``make test-fast``'s ``not slow``."""
+    expr = config.getoption("markexpr", "")
+    if not expr:
+        return False
+    try:
+        from _pytest.mark.expression import Expression
+    except ImportError:  # pragma: no cover - a pytest that moved it: just collect the file
+        return False
+    return not Expression.compile(expr).evaluate(lambda name, **_: name in ("slow", "cad"))
+
+
+def pytest_ignore_collect(collection_path, config):
+    if collection_path.name in SLOW_FILES and _deselects_slow(config):
+        return True
+    return None
 
 
 @pytest.fixture(autouse=True)
