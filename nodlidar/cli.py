@@ -46,7 +46,7 @@ class _Formatter(argparse.HelpFormatter):
 
     def _fill_text(self, text, width, indent):
         out = []
-        for items in paragraphs(plain(text)):
+        for items in paragraphs(plain(text) or ""):
             for item in items:
                 hang = "  " if item[:2] in ("- ", "* ") else ""   # bullet text hangs under itself
                 out.append(textwrap.fill(item, width, initial_indent=indent,

@@ -35,6 +35,7 @@ from typing import Any
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 # rot_y/rot_x: geometry's (the one rotation vocabulary), re-exported for callers here
 from ..geometry import rot_x, rot_y
@@ -166,7 +167,7 @@ def static_transforms(pivot_m: Sequence[float] | np.ndarray) -> list[tuple[str, 
     return [(HEAD_FRAME, LASER_FRAME, np.eye(3), -np.asarray(pivot_m, dtype=float))]
 
 
-def tf_message(ts, transforms: Sequence[tuple[int, str, str, np.ndarray, np.ndarray]]):
+def tf_message(ts, transforms: Sequence[tuple[int, str, str, ArrayLike, np.ndarray]]):
     """tf2_msgs/TFMessage of (stamp_ns, parent, child, R, t) tuples (R a 3x3 matrix or an
     (x, y, z, w) quaternion, t [m])."""
     T = ts.types
