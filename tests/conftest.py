@@ -4,6 +4,8 @@ count as slow (``make test-fast`` runs ``-m "not slow"``; ``make test`` runs the
 from __future__ import annotations
 
 import os
+import warnings
+from pathlib import Path
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("TQDM_DISABLE", "1")
@@ -18,7 +20,7 @@ import pytest  # noqa: E402
 #: ``nodlidar emulate``), emulator streams paced in real time, calibration fits and reports
 #: on simulated captures, Dask clusters, fuzzers, first imports of open3d/rosbags. What is
 #: left (~680 tests) takes ~28 s of CPU with collection: ``make test-fast`` ~30 s when idle.
-#: A name that no longer exists only makes ``make test-fast`` slower: rename it here too.
+#: A name that matches no test only makes ``make test-fast`` slower; a whole-suite run warns.
 SLOW_TESTS: dict[str, tuple[str, ...]] = {
     "test_bag.py": (
         "test_round_trip_with_rosbags_reader",
@@ -230,11 +232,20 @@ def pytest_collection_modifyitems(config, items):
     """Mark slow: CAD exports and notebook runs (tens of seconds each), the tests listed in
     :data:`SLOW_TESTS` and those using a :data:`SLOW_FIXTURES` fixture. Runs first, before
     ``-m``/``-k`` deselect anything."""
+    seen = set()
     for item in items:
         path, _, name = item.nodeid.partition("::")
         base = name.partition("[")[0]
         file = path.removeprefix("tests/")
+        seen.add((file, base))
         if (item.get_closest_marker("cad") or item.get_closest_marker("notebook")
                 or base in SLOW_TESTS.get(file, ())
                 or set(SLOW_FIXTURES.get(file, ())) & set(getattr(item, "fixturenames", ()))):
             item.add_marker(pytest.mark.slow)
+    # a whole-suite run (no paths given) names the SLOW_TESTS entries that match no test
+    if [Path(a).resolve() for a in config.args] == [config.rootpath / "tests"]:
+        stale = [f"{f}::{t}" for f, ts in SLOW_TESTS.items() for t in ts if (f, t) not in seen]
+        if stale:
+            warnings.warn(pytest.PytestConfigWarning(
+                f"tests/conftest.py SLOW_TESTS names no test (renamed?): {', '.join(stale)}"),
+                stacklevel=1)
