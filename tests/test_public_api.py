@@ -35,7 +35,6 @@ CLI_PACKAGE = "nodlidar.commands"
 #: an entry fixed in its module simply stops mattering (and should be deleted here).
 PENDING: set[tuple[str, str]] = {
     ("nodlidar.tracking.tracker", "_stamp"),  # tracking/evaluate
-    ("nodlidar.tracking.voxels", "WindowVoxelMap"),  # tracking/segment
 }
 
 

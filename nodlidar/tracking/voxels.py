@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import require
 
-__all__ = ["VoxelGrid", "VoxelMap", "carve_samples"]
+__all__ = ["VoxelGrid", "VoxelMap", "WindowVoxelMap", "carve_samples"]
 
 _OFF = 1 << 20
 _MASK = (1 << 21) - 1
