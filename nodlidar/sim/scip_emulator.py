@@ -35,6 +35,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -589,7 +590,7 @@ class ScipEmulator:
                  range_source: RangeSource | None = None, *, faults: FaultConfig | None = None,
                  scip1: bool = False, reboot_resets_timer: bool = False,
                  host: str = "127.0.0.1", port: int = 0, max_line_bytes: int = 256,
-                 **device_kw):
+                 **device_kw: Any):
         require(isinstance(host, str) and bool(host), "emulator.host", host,
                 "an address such as 127.0.0.1")
         require(isinstance(port, int) and not isinstance(port, bool) and 0 <= port <= 65535,
