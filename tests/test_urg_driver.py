@@ -9,6 +9,7 @@ emulator skip scans; the fault tests run on a fast real-time clock and check cor
 from __future__ import annotations
 
 import gc
+import math
 import socket
 import threading
 import time
@@ -463,7 +464,12 @@ def test_power_cycle_resyncs_clock_and_counts_the_outage():
     assert (np.array(errs) <= np.array(bounds)).all(), max(errs)
     lost = ks[-1] - ks[0] + 1 - len(scans)
     assert lost >= 20  # 2.5 s away at 10 scans/s
-    assert drv.stats.dropped_scans == lost
+    # The driver places the first scan after the outage by the new clock sync (the device's
+    # timer restarted), so its count of missed scans is exact while the two syncs' stated
+    # bounds together stay under half a period, and off by at most the periods they span
+    # otherwise (a loaded host stretches the RTT: at sim rate 5 a 10 ms stall is 50 ms)
+    slack = (sync0.rtt_s / 2 + sync1.rtt_s / 2 + 2e-3) / period
+    assert abs(drv.stats.dropped_scans - lost) <= math.floor(slack + 0.5), (slack, lost)
 
 
 def test_gives_up_when_device_stays_away():

@@ -705,8 +705,10 @@ class UrgDriver:
         every = (base.interval or 0) + 1
         period_ms = 60000.0 / self._params().scan_rpm
         delivered = 0
-        first_ms: int | None = None
+        first_ms: float | None = None
         last_index = -1
+        last_stamp: float | None = None   # host stamp of the last scan delivered [s]
+        resets_seen = self._unwrap.resets
         device_left = dev_count  # scans the device still owes (finite requests)
         req = None
         try:
@@ -728,6 +730,16 @@ class UrgDriver:
                         ts = self._unwrap(fr.timestamp_ms, self._step0_host_time())
                         if first_ms is None:
                             first_ms = ts
+                        if (self._unwrap.resets != resets_seen and last_stamp is not None
+                                and self.clock_sync is not None):
+                            # the device timer restarted (a power cycle): the unwrapped
+                            # timeline bridged the gap by receive times, whose jitter a
+                            # loaded host stretches past half a period; the clock syncs on
+                            # both sides (the new one made at the reconnect) are bounded
+                            # by their RTTs, so the gap is counted from the two stamps
+                            gap = (self.clock_sync.host_time(ts) - last_stamp) * 1000.0
+                            first_ms = ts - (last_index + round(gap / period_ms)) * period_ms
+                        resets_seen = self._unwrap.resets
                         index = int(round((ts - first_ms) / period_ms))
                         if index <= last_index:
                             self.stats.stale_messages += 1
@@ -736,6 +748,7 @@ class UrgDriver:
                             self.stats.dropped_scans += max(0, (index - last_index) // every - 1)
                         last_index = index
                         scan = self._make_scan(fr, t_rx, ts, index, reply.raw)
+                        last_stamp = scan.stamp_s if self.clock_sync is not None else None
                         if dev_count:
                             device_left = fr.remaining or 0
                         delivered += 1
