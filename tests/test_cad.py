@@ -31,7 +31,7 @@ pytestmark = pytest.mark.cad
 ROOT = Path(__file__).resolve().parents[1]
 # the chained reading of the paper (unshadowed beams, which these checks need); at the
 # swap of the paper files this becomes urg04lx-paper-chained.toml
-PAPER = ROOT / "design" / "urg04lx-paper.toml"
+PAPER = ROOT / "design" / "urg04lx-paper-chained.toml"
 
 # Tolerances of the issue: mirror faces where the solver put them.
 POS_TOL_MM = 0.01

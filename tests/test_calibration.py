@@ -185,9 +185,13 @@ def test_calibrated_beam_model_puts_points_on_the_wall(design):
     res = calibrate(design, caps)
     # the runtime's projection with the calibration: beams re-traced through the fitted mirrors
     bm = AssemblyModel.from_design(design, res.perturbations, "cal").deployed
+    # the beams the design gives up (shadowed) and the side-window beams no mirror takes
+    # (they leave sideways) never reach a wall: nearly all of the others do
+    free = design.lidar.steps[design.mirror_of_step < 0]
+    lost = len(design.shadowed_steps) + len(np.setdiff1d(free, design.direct_steps))
     for wall, cap in zip(DEFAULT_WALLS, caps):
         ok = np.isfinite(cap.ranges_m)
-        assert ok.mean() > 0.9
+        assert ok.mean() > 0.9 - lost / design.lidar.n_steps
         p = bm.points(cap.steps[ok], cap.ranges_m[ok], cap.nod_rad[ok])
         # round trip data -> fit -> runtime projection: back on the generating plane
         assert_allclose(p @ wall.normal, wall.distance_m, atol=1e-6)
@@ -371,9 +375,11 @@ def test_result_to_dict_is_json(sim_result):
     assert calibration_from_result(other, created=when).id != a.id
 
 
-def test_design_calibration_table_is_used(design):
+def test_design_calibration_table_is_used():
     import dataclasses
 
+    # the counts below are the chained reading's (its L1 takes steps 612..725)
+    design = solve(load_design(PAPER.with_name("urg04lx-paper-chained.toml")))
     spec = dataclasses.replace(design.spec, sections={"calibration": {"min_points": 10**6}})
     strict = dataclasses.replace(design, spec=spec)
     caps = synthetic_captures(design, TRUTH)

@@ -13,7 +13,7 @@ from nodlidar.spec import design_from_dict, design_to_toml, load_design
 ROOT = Path(__file__).resolve().parents[1]
 # the chained reading (L1 612..725, an optimal alternative); at the swap of the paper
 # files this becomes urg04lx-paper-chained.toml
-PAPER = ROOT / "design" / "urg04lx-paper.toml"
+PAPER = ROOT / "design" / "urg04lx-paper-chained.toml"
 
 
 def test_design_table_and_json(capsys):
@@ -131,7 +131,7 @@ def test_default_design_is_found_from_any_directory(tmp_path, monkeypatch, capsy
     assert (tmp_path / "s" / "study_mirrors.md").stat().st_size > 0
 
 
-PAPER_EXACT = ROOT / "design" / "urg04lx-paper-exact.toml"  # becomes urg04lx-paper.toml at the swap
+PAPER_EXACT = ROOT / "design" / "urg04lx-paper.toml"  # the default: the exact reading
 
 
 def test_exact_paper_reading_json(capsys):

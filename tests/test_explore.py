@@ -25,7 +25,7 @@ from nodlidar.verify import verify
 
 ROOT = Path(__file__).resolve().parents[1]
 # the chained reading (one standoff to sweep); urg04lx-paper-chained.toml after the swap
-PAPER = ROOT / "design" / "urg04lx-paper.toml"
+PAPER = ROOT / "design" / "urg04lx-paper-chained.toml"
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,7 @@ from nodlidar.verify import verify
 ROOT = Path(__file__).resolve().parents[1]
 # the chained reading (no explicit [[placement.mirrors]], which would override the
 # windows); urg04lx-paper-chained.toml after the swap of the paper files
-BASE = (ROOT / "design" / "urg04lx-paper.toml").read_text()
+BASE = (ROOT / "design" / "urg04lx-paper-chained.toml").read_text()
 
 # The [layout] tables of the splits; everything else is the paper file's.
 SPLITS = {

@@ -2,16 +2,13 @@
 
 Two readings (docs/paper-reproduction.md):
 
-* EXACT (design/urg04lx-paper-exact.toml): explicit per-mirror step ranges, anchor targets
+* EXACT (design/urg04lx-paper.toml, the default): explicit per-mirror step ranges, anchor targets
   on the third-step grid, OA = 2.0 / 7.0 cm, mirrors not chained. All four printed numbers
   come out within 0.003 cm and 0.007 deg; checked here against a hand construction that
   does not use the solver (law of reflection from the anchor target and OA).
-* CHAINED (design/urg04lx-paper.toml today): equal contiguous split, L2 chained to L1, OA
+* CHAINED (design/urg04lx-paper-chained.toml): equal contiguous split, L2 chained to L1, OA
   fitted to phi(L1); the other three numbers are predictions with ~9 % longer mirrors,
   pinned here so any change to them is deliberate.
-
-When the files are renamed (the exact reading becomes urg04lx-paper.toml), only the two
-constants below change.
 """
 
 from pathlib import Path
@@ -29,8 +26,8 @@ from nodlidar.spec import load_design
 from nodlidar.verify import verify
 
 DESIGNS = Path(__file__).resolve().parents[1] / "design"
-PAPER = DESIGNS / "urg04lx-paper.toml"              # the chained reading
-PAPER_EXACT = DESIGNS / "urg04lx-paper-exact.toml"  # the reading that gives all four numbers
+PAPER = DESIGNS / "urg04lx-paper-chained.toml"  # the chained reading
+PAPER_EXACT = DESIGNS / "urg04lx-paper.toml"    # the reading that gives all four numbers
 
 # Section III as printed: QZ [cm] and phi [deg]
 PRINTED = {"L1": (5.4692, 80.0397), "L2": (14.6019, 60.8307)}

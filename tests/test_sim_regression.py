@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 DATA = Path(__file__).parent / "data"
-PAPER = Path(__file__).resolve().parents[1] / "design" / "urg04lx-paper.toml"
+PAPER = Path(__file__).resolve().parents[1] / "design" / "urg04lx-paper-chained.toml"
 FIELDS_FLOAT = ("t_s", "nod_rad", "true_range_m", "range_m", "point_world")
 FIELDS_INT = ("steps", "mirror", "bounces", "object_id", "part")
 

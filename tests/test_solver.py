@@ -17,9 +17,8 @@ from nodlidar.spec import load_design
 from nodlidar.verify import verify
 
 ROOT = Path(__file__).resolve().parents[1]
-# the chained, equal-split reading (these tests exercise chaining and the auto split); when
-# design/urg04lx-paper-exact.toml becomes urg04lx-paper.toml, point this at the renamed file
-PAPER = ROOT / "design" / "urg04lx-paper.toml"
+# the chained, equal-split reading (these tests exercise chaining and the auto split)
+PAPER = ROOT / "design" / "urg04lx-paper-chained.toml"
 
 
 @pytest.fixture(scope="module")

@@ -178,7 +178,7 @@ def _design(tmp_path, old, new):
 
 
 @pytest.mark.parametrize("old, new, exc, needle", [
-    ("chain = true", 'chain = "false"', ParameterError, "placement.chain = 'false'"),
+    ("chain = false", 'chain = "false"', ParameterError, "placement.chain = 'false'"),
     ("design_distance_m = 2.0", "design_distance_m = true", ParameterError,
      "layout.design_distance_m = True"),
     ("windows = 3", "windows = 3.0", ParameterError, "layout.windows"),
@@ -186,7 +186,7 @@ def _design(tmp_path, old, new):
     ("[calibration]\n", "[calibraton]\n", UnknownKeyError, "did you mean [calibration]?"),
     ("[cad]\n", "[cadd]\n", UnknownKeyError, "did you mean [cad]?"),
     ("description =", "descripton =", UnknownKeyError, "did you mean description?"),
-    ("chain = true", "chian = true", UnknownKeyError, "did you mean placement.chain?"),
+    ("chain = false", "chian = false", UnknownKeyError, "did you mean placement.chain?"),
     ("hinge_z_m = -0.025", "hinge_z_m = 1e9", ParameterError, "mirror.hinge_z_m"),
     ("pivot_m = [0.0, 0.0, 0.0]", "pivot_m = [nan, 0.0, 0.0]", ParameterError, "nod.pivot_m[0]"),
     ("pivot_m = [0.0, 0.0, 0.0]", "pivot_m = [0.0, 0.0]", ParameterError, "nod.pivot_m"),
@@ -420,7 +420,7 @@ def test_ctrl_c_with_dask_workers_is_one_line(tmp_path):
     assert lines == ["nodlidar tolerance: interrupted"], err[-2000:]
 
 
-EXACT = Path(PAPER_DESIGN).with_name("urg04lx-paper-exact.toml")
+EXACT = Path(PAPER_DESIGN)  # the default design is the per-mirror (exact) reading
 
 
 @pytest.mark.skipif(not EXACT.is_file(), reason="no per-mirror design file")
