@@ -47,7 +47,10 @@ print(f"{lidar.name}: {lidar.n_steps} valid steps, resolution {lidar.angular_res
 # ## The mirror table against the paper's published numbers
 #
 # The paper gives L1 = 5.4692 cm, phi = 80.0397 deg and L2 = 14.6019 cm, phi = 60.8307 deg.
-# OA is not given; the design file's standoff is the value that reproduces phi(L1).
+# OA and the beams of each mirror are not given; the default design file states them
+# (L1 616..725, OA 2.0 cm; L2 498..611, OA 7.0 cm; anchors one third-step beside the first
+# direct beam) and reproduces all four numbers. design/urg04lx-paper-chained.toml, the
+# equal chained split, gives lengths ~9 % longer (docs/paper-reproduction.md).
 
 # %%
 rows = mirror_table(design)
@@ -61,10 +64,11 @@ for c in comparison:
     print(f"{c['quantity']:12} paper {c['paper']:10.6g}  library {c['ours']:10.6g}  "
           f"({c['relative'] * 100:+.2f} %)")
 by_q = {c["quantity"]: c for c in comparison}
-assert abs(by_q["L1_phi_deg"]["difference"]) < 1e-6        # reproduced by construction
-assert abs(by_q["L2_phi_deg"]["relative"]) < 0.01           # within 1 %
-assert abs(by_q["L1_length_m"]["relative"]) < 0.15          # lengths: see the report
-assert abs(by_q["L2_length_m"]["relative"]) < 0.15
+# issue 17's bounds: 0.003 cm and 0.01 deg of the printed values (residuals: see the docs)
+for q in ("L1_length_m", "L2_length_m"):
+    assert abs(by_q[q]["difference"]) < 3e-5
+for q in ("L1_phi_deg", "L2_phi_deg"):
+    assert abs(by_q[q]["difference"]) < 0.01
 
 # %% [markdown]
 # ## Figures 6a / 7a for every mirror: actual bearing on arcs of 0.4 .. 6 m
