@@ -91,6 +91,28 @@ def test_matches_simulator_truth_world_frame_moving_robot():
     assert pc.calibration_id == "table-1" and pc.frame == "world"
 
 
+def test_shadowed_beams_are_dropped_as_blocked():
+    """The design's shadowed steps (their reflection meets another mirror) are exactly the
+    steps the runtime's model calls not clear, the simulator returns nothing for them, and
+    assembly counts them as blocked instead of projecting them on one reflection."""
+    model = AssemblyModel.from_design(DESIGN)
+    lid = DESIGN.lidar
+    assert len(DESIGN.shadowed_steps) == 20   # 616..625 and 143..152 (design file)
+    assert_array_equal(lid.steps[~model.clear], DESIGN.shadowed_steps)
+    sim = SceneSimulator(DESIGN, wall_scene(2.0))
+    batch, truths = simulate(sim, 2)
+    sh = DESIGN.shadowed_steps - lid.step_min
+    assert all(not np.isfinite(t.range_m[sh]).any() for t in truths)
+    pc = assemble(model, batch, nod_samples())
+    assert not np.isin(pc.step, DESIGN.shadowed_steps).any()
+    # a real sensor may see the back of the shadowing glass: a range on those beams is
+    # dropped and counted as blocked, not projected
+    r = np.stack([t.true_range_m for t in truths])
+    r[:, sh] = 0.07
+    pc2 = assemble(model, ScanBatch.from_arrays(lid.steps, r, batch.scan_time_s), nod_samples())
+    assert pc2.meta["blocked"] == 2 * len(sh) and len(pc2) == len(pc)
+
+
 def test_beam_times_and_per_beam_nod_vs_linear_ramp():
     """Beam time = scan stamp + step x 97.65625 us (URG-04LX, written out by hand here), and
     each beam gets the ramp's angle at its own time, not its scan's."""
