@@ -538,7 +538,7 @@ def test_beam_map_names_its_codes_with_the_geometry_sentinels():
     from nodlidar.calibration.fit import beam_map
     from nodlidar.geometry import BLOCKED, DIRECT, HOUSING
 
-    exact = solve(load_design(ROOT / "design" / "urg04lx-paper-exact.toml"))
+    exact = solve(load_design(ROOT / "design" / "urg04lx-paper.toml"))
     steps = exact.lidar.steps
     m = beam_map(exact, None)
     shadowed = set(range(616, 626)) | set(range(143, 153))

@@ -30,10 +30,13 @@ from nodlidar.hinge import (
 from nodlidar.solver import solve
 from nodlidar.spec import load_design
 
-PAPER = Path(__file__).resolve().parents[1] / "design" / "urg04lx-paper.toml"
-# the paper read to its four printed numbers: unchained mirrors, L2's tip in front of L1
-# (at the swap of the paper files it becomes the default urg04lx-paper.toml, -exact goes)
-EXACT = next(p for p in (PAPER.with_name("urg04lx-paper-exact.toml"), PAPER) if p.exists())
+_DESIGNS = Path(__file__).resolve().parents[1] / "design"
+# the chained reading of the paper (equal windows, mirrors edge to edge): the k = 5 build
+# is made from it by changing the window count
+PAPER = _DESIGNS / "urg04lx-paper-chained.toml"
+# the paper read to its four printed numbers (the default file): unchained mirrors, L2's
+# tip in front of L1
+EXACT = _DESIGNS / "urg04lx-paper.toml"
 # the issue's tolerances: same glass pose to 0.01 mm / 0.01 deg
 POS_TOL_MM = 0.01
 ANG_TOL_DEG = 0.01

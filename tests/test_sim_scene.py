@@ -93,6 +93,12 @@ def _analytic(design, perts, steps, nod, plane_pt, plane_n, pose: SensorPose,
     for j, p in enumerate(patches):  # the reflected rays must not meet a second mirror
         again = np.isfinite(_patch_t(p, o, d)) & (mos != j) & ~direct
         det &= ~again
+    # ... nor turn back into the lidar's housing (a vertical cylinder about the z axis):
+    # the line's closest approach to the axis, ahead of the mirror, inside the radius
+    oxy, dxy = o[:, :2], d[:, :2]
+    t_c = -np.sum(oxy * dxy, 1) / np.maximum(np.sum(dxy * dxy, 1), 1e-300)
+    closest = np.linalg.norm(oxy + np.maximum(t_c, 0.0)[:, None] * dxy, axis=1)
+    det &= direct | (closest > lid.housing_radius_m)
     pivot = np.array(design.spec.nod.pivot_m)
     R = pose.rotation @ _ry(nod)
     ow = (o - pivot) @ R.T + pivot @ pose.rotation.T + np.array(pose.position_m)

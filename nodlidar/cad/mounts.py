@@ -31,7 +31,7 @@ Parts
     in a beam path; the glass is bonded to the datum faces.
 
     Close unchained neighbours (``placement.chain = false``, e.g. the paper read to its
-    printed numbers, ``design/urg04lx-paper-exact.toml``, where L2's outer end stands
+    printed numbers, ``design/urg04lx-paper.toml``, where L2's outer end stands
     4.9 mm in front of L1's glass near L1's inner end): a free end stop that would run
     into the neighbour's glass is cut back to clear it by ``pocket_clearance_mm / 2`` -
     at the neighbour's glass end when the two ends face each other across a short gap

@@ -43,6 +43,7 @@ from ..geometry import (
     Perturbation,
     directions_from_bearings,
     pitch_about_pivot,
+    ray_cylinder_hit,
     reflect,
     rotate_about_axis,
     rotate_about_line,
@@ -294,7 +295,8 @@ class SceneSimulator:
         Returns
         -------
         start (n, 3), direction (n, 3), path offset (n,) [m], first mirror (n,) int (-1
-        direct), bounces (n,) int, alive (n,) bool (False: absorbed by a mirror's back).
+        direct), bounces (n,) int, alive (n,) bool (False: absorbed by a mirror's back or
+        reflected into the lidar's housing).
         """
         steps = np.asarray(steps)
         self.lidar.check_step(steps, "steps")
@@ -339,6 +341,12 @@ class SceneSimulator:
                 best_t[sel] = t[closer]
                 best_m[sel] = i
                 best_nrm[sel] = nrm[closer]
+            # a reflected beam that turns back into the lidar's own housing before it
+            # meets another mirror is lost there (verify.trace's rule, which the runtime
+            # uses to drop such steps)
+            housed = self._into_housing(o, d, bounces, alive, best_t)
+            alive &= ~housed
+            best_t = np.where(housed, np.inf, best_t)
             hit = np.isfinite(best_t)
             if not np.any(hit):
                 break
@@ -353,7 +361,18 @@ class SceneSimulator:
             first = np.where(ref & (first < 0), best_m, first)
             bounces += ref
             last = np.where(ref, best_m, last)
+        alive &= ~self._into_housing(o, d, bounces, alive, np.inf)
         return o, d, off, first, bounces, alive
+
+    def _into_housing(self, o: np.ndarray, d: np.ndarray, bounces: np.ndarray,
+                      alive: np.ndarray, t_max: np.ndarray | float) -> np.ndarray:
+        """(n,) bool: reflected, live rays that enter the housing cylinder before ``t_max``."""
+        out = np.zeros(len(o), dtype=bool)
+        sel = np.flatnonzero(alive & (bounces > 0))
+        if len(sel):
+            tm = t_max if np.ndim(t_max) == 0 else np.asarray(t_max)[sel]
+            out[sel] = ray_cylinder_hit(o[sel], d[sel], self.lidar.housing_radius_m, tm)
+        return out
 
     def _head_rays_cached(self, steps, lift_left, lift_right, whole: bool | None = None):
         """:meth:`head_rays`, memoised for whole scans with a constant lift state (the usual
