@@ -268,7 +268,10 @@ def test_one_sided_design_gets_a_profile_for_each_servo(tmp_path):
     """A design with mirrors on the left only (a FoV split the spec allows): the left servo's
     profile is the design's; the right side has no carrier, so for_design refuses it, and
     lift_profiles gives its servo the left's travel mirrored (a bus still has servo 3)."""
-    text = PAPER.read_text().replace('name = "urg04lx-paper"', 'name = "left-only"', 1)
+    # the chained reading: its windows are given by the layout (the default file places
+    # each mirror explicitly)
+    chained = PAPER.with_name("urg04lx-paper-chained.toml")
+    text = chained.read_text().replace('name = "urg04lx-paper-chained"', 'name = "left-only"', 1)
     layout = ("front_window_steps = [271, 498]\n[[layout.side_windows]]\nsteps = [499, 725]\n"
               "mirrors = 2\noffsets = [1, 2]\n")
     assert text.count("mirrors_per_side = 2\n") == 1
