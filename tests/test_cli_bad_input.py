@@ -42,7 +42,7 @@ def files(tmp_path_factory):
     (d / "binary.toml").write_bytes(b'name = "\xff\xfe"\n')
     out["BIN"] = str(d / "binary.toml")
     edits = {
-        "CHAIN": ("chain = true", 'chain = "false"'),
+        "CHAIN": ("chain = false", 'chain = "false"'),
         "DDBOOL": ("design_distance_m = 2.0", "design_distance_m = true"),
         "TOLSEC": ("[tolerance]\n", "[tolerence]\n"),
         "HINGE": ("hinge_z_m = -0.025", "hinge_z_m = 1e9"),
