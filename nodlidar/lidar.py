@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import ParameterError, require
 
@@ -132,7 +133,7 @@ class LidarModel:
         ``beam_time_s(0, step_min)``."""
         return float(self.beam_time_s(0.0, self.step_min))
 
-    def beam_time_s(self, scan_time_s: np.ndarray | float, step: np.ndarray | int) -> np.ndarray:
+    def beam_time_s(self, scan_time_s: ArrayLike, step: ArrayLike) -> np.ndarray:
         """Time of each beam [s] given its scan's SCIP timestamp time (step 0) [s].
 
         The one place the scan-time -> beam-time convention lives: ``scan_time_s`` refers to

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -42,7 +43,8 @@ def read_stl_triangles(path: str | Path) -> np.ndarray:
             return np.frombuffer(data, dtype=rec, count=n, offset=84)["v"].astype(np.float64)
     import trimesh
 
-    return np.asarray(trimesh.load(str(path), force="mesh").triangles, dtype=np.float64)
+    mesh: Any = trimesh.load(str(path), force="mesh")  # force="mesh": a Trimesh
+    return np.asarray(mesh.triangles, dtype=np.float64)
 
 
 def view_basis(elev_deg: float, azim_deg: float) -> np.ndarray:
@@ -106,13 +108,14 @@ def render_preview(meshes: Mapping[str, Mapping[str, np.ndarray]],
             self._rgba = np.repeat(rgba[:, None, :], 3, axis=1)   # (n, 3, 4): flat
             self.set_in_layout(False)
 
-        def draw(self, renderer) -> None:
-            if not self.get_visible() or not len(self._xy):
+        def draw(self, renderer: Any) -> None:
+            axes = self.axes
+            if not self.get_visible() or not len(self._xy) or axes is None:
                 return
             gc = renderer.new_gc()
-            gc.set_clip_rectangle(self.axes.bbox)
+            gc.set_clip_rectangle(axes.bbox)
             renderer.draw_gouraud_triangles(gc, self._xy, self._rgba,
-                                            self.axes.transData.frozen())
+                                            axes.transData.frozen())
             gc.restore()
             self.stale = False
 

@@ -25,9 +25,10 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..beams import DIRECT, BeamModel  # noqa: F401  (BeamModel: type of fields)
 from ..dynamixel import RAD_PER_TICK
@@ -38,12 +39,15 @@ from .servo_angles import MirrorLiftProfile, interpolate_angle, lift_profiles
 
 if TYPE_CHECKING:
     from ..geometry import Perturbation
+    from ..lidar import LidarModel
     from ..solver import Design
 
 __all__ = ["FRAMES", "PointCloud", "ScanBatch", "AngleSamples", "PoseTrack", "AssemblyModel",
            "AssemblyStats", "assemble", "DEPLOYED", "LIFTED", "BETWEEN", "mirror_state"]
 
 FRAMES = ("sensor", "robot", "world")
+#: What :func:`~nodlidar.runtime.servo_angles.interpolate_angle` does outside the samples.
+Outside = Literal["nan", "clamp", "extrapolate"]
 DEPLOYED, LIFTED, BETWEEN = 0, 1, 2
 
 # Default: within 3 servo ticks (4.6 mrad) of an end position counts as there, like
@@ -154,7 +158,8 @@ class ScanBatch:
     scan_time_s: np.ndarray
 
     @classmethod
-    def from_arrays(cls, steps, ranges_m, scan_time_s) -> ScanBatch:
+    def from_arrays(cls, steps: ArrayLike, ranges_m: ArrayLike,
+                    scan_time_s: ArrayLike) -> ScanBatch:
         """From ``(m, n)`` ranges of ``m`` scans sharing the ``(n,)`` steps."""
         r = np.atleast_2d(np.asarray(ranges_m, dtype=float))
         st = np.asarray(steps)
@@ -187,7 +192,7 @@ class AngleSamples:
     angle_rad: np.ndarray
 
     @classmethod
-    def of(cls, samples) -> AngleSamples:
+    def of(cls, samples: Any) -> AngleSamples:
         """From a :class:`~nodlidar.runtime.actuators.Samples` (host_time_s, angle_rad), a
         ``(t, angle)`` pair, or an AngleSamples. Duplicate times (two READs in the same
         clock tick) keep the first sample, so the times are strictly increasing."""
@@ -206,7 +211,7 @@ class AngleSamples:
         keep = np.concatenate([[True], np.diff(t) > 0]) if t.size else np.zeros(0, bool)
         return cls(t[keep], a[keep])
 
-    def at(self, t, outside: str = "nan") -> np.ndarray:
+    def at(self, t: ArrayLike, outside: Outside = "nan") -> np.ndarray:
         """Linearly interpolated angle [rad] at times ``t`` [s]; NaN outside the samples."""
         return interpolate_angle(self.t_s, self.angle_rad, t, outside=outside)
 
@@ -391,7 +396,7 @@ class AssemblyModel:
                    *lift_profiles(design))
 
     @property
-    def lidar(self):
+    def lidar(self) -> LidarModel:
         return self.deployed.lidar
 
 
@@ -417,11 +422,16 @@ def mirror_state(angle_rad: np.ndarray, profile: MirrorLiftProfile,
     return out
 
 
-def _side_state(samples, t: np.ndarray, profile: MirrorLiftProfile, tol: float) -> np.ndarray:
+def _side_state(samples: Any, t: np.ndarray, profile: MirrorLiftProfile | None,
+                tol: float) -> np.ndarray:
     if samples is None or isinstance(samples, str):
         s = samples or "deployed"
         require(s in ("deployed", "lifted"), "mirror state", s, "'deployed', 'lifted' or samples")
         return np.full(t.shape, DEPLOYED if s == "deployed" else LIFTED, dtype=np.int8)
+    # a hand-built AssemblyModel may carry no lift profile: say so rather than AttributeError
+    require(profile is not None, "lift_left/lift_right", None,
+            "a MirrorLiftProfile (the model has none) when lift-servo samples are given")
+    assert profile is not None  # for the type checker; require() raised otherwise
     return mirror_state(AngleSamples.of(samples).at(t, "nan"), profile, tol)
 
 
@@ -434,15 +444,15 @@ def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
             + T[:, :3, 3])
 
 
-def assemble(model: AssemblyModel, scans: ScanBatch, nod, *,
-             mirror_left=None, mirror_right=None,
+def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
+             mirror_left: Any = None, mirror_right: Any = None,
              lift_left: MirrorLiftProfile | None = None,
              lift_right: MirrorLiftProfile | None = None,
              lift_tolerance_rad: float = LIFT_TOLERANCE_RAD,
              frame: str = "sensor", robot_from_sensor: np.ndarray | None = None,
              world_from_robot: PoseTrack | Callable[[np.ndarray], np.ndarray] | np.ndarray
              | None = None,
-             nod_outside: str = "nan", **renamed: Any) -> PointCloud:
+             nod_outside: Outside = "nan", **renamed: Any) -> PointCloud:
     """Assemble scans into a point cloud.
 
     Parameters
