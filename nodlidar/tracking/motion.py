@@ -37,9 +37,12 @@ centroids projected on the ground plane against their mean times.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
@@ -85,12 +88,14 @@ def velocity_from_motion(v: float, heading: float) -> np.ndarray:
     return np.array([v * np.cos(heading), v * np.sin(heading)])
 
 
-def motion_from_velocity(vel) -> tuple[float, float]:
+def motion_from_velocity(vel: np.ndarray | Sequence[float]) -> tuple[float, float]:
+    """(2,) ground-plane velocity (vx, vy) [m/s] -> (speed [m/s], heading [rad])."""
     vx, vy = float(vel[0]), float(vel[1])
     return float(np.hypot(vx, vy)), float(np.arctan2(vy, vx))
 
 
-def compensate(points: np.ndarray, t_s: np.ndarray, velocity, t_ref_s: float) -> np.ndarray:
+def compensate(points: ArrayLike, t_s: ArrayLike, velocity: np.ndarray | Sequence[float],
+               t_ref_s: float) -> np.ndarray:
     """Eq. 11: move each point back to ``t_ref_s`` along the ground-plane ``velocity``.
 
     Parameters
@@ -220,7 +225,8 @@ class RenyiCost:
         At most this many points (evenly spaced in time order) enter the sum.
     """
 
-    def __init__(self, points, t_s, t_ref_s: float, sigma_m: float, center_velocity,
+    def __init__(self, points: ArrayLike, t_s: ArrayLike, t_ref_s: float, sigma_m: float,
+                 center_velocity: np.ndarray | Sequence[float],
                  max_dv_m_s: float = 0.1, cutoff_sigmas: float = 5.0, plane: bool = True,
                  max_points: int = 800) -> None:
         p = np.asarray(points, float)
@@ -248,7 +254,7 @@ class RenyiCost:
         self.inv4s2 = np.float32(1.0 / (4.0 * sigma_m ** 2))
         self.plane = bool(plane)
 
-    def __call__(self, velocity) -> float:
+    def __call__(self, velocity: ArrayLike) -> float:
         dw = (np.asarray(velocity, float) - self.c).astype(np.float32)
         # dx + dw_x dt, squared, + the same in y (+ dz^2 in 3D), times -1/(4 sigma^2), exp:
         # the same float32 operations in place (two temporaries instead of eight); in the
@@ -267,7 +273,7 @@ class RenyiCost:
         return float(-np.log(s / self.n ** 2))
 
 
-def _renyi_derivatives(cost: RenyiCost, velocity) -> tuple[float, np.ndarray, np.ndarray]:
+def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.ndarray, np.ndarray]:
     """The Rényi cost, its gradient (2,) and Hessian (2, 2) in (vx, vy) in one pass over
     the pairs, in closed form: with ``e = exp(-c d^2)``, ``c = 1/(4 sigma^2)``,
     ``d = dq + dw dt`` and ``S = n + 2 sum e``, ``f = -ln(S / n^2)``,
@@ -411,6 +417,7 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
     require(len(p) >= 3, "points", len(p), ">= 3")
     t_ref = float(t.max()) if t_ref_s is None else float(t_ref_s)
     w0 = guess.velocity
+    cov: np.ndarray | None
     if entropy == "renyi":
         cost = RenyiCost(p, t, t_ref, sigma_m, w0, max_dv_m_s=search_m_s, plane=plane,
                          max_points=max_points)
@@ -458,9 +465,10 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
             g = np.linspace(-half, half, n)
             W = centre + np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
             if plane:
-                vals = sum(_voxel_entropy_grid(p[:, :2], t, W, t_ref, voxel_m,
-                                               o * voxel_m / voxel_offsets)
-                           for o in range(voxel_offsets)) / voxel_offsets
+                # a sum of (m,) arrays: an array (mypy sees sum()'s int start)
+                vals = cast(np.ndarray, sum(_voxel_entropy_grid(p[:, :2], t, W, t_ref, voxel_m,
+                                                                o * voxel_m / voxel_offsets)
+                                            for o in range(voxel_offsets)) / voxel_offsets)
             else:
                 vals = np.array([f(wv) for wv in W])
             best = W[vals <= vals.min() + 1e-12]

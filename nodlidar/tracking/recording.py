@@ -19,12 +19,22 @@ mount on a Pioneer P3-DX (and the simulated scenes' sensor height).
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .._light import DEFAULT_SENSOR_HEIGHT_M  # defined without numpy: the CLI parser shows it
 from .scans import ScanPoints
+
+if TYPE_CHECKING:
+    from ..design import Design
+    from ..runtime.actuators import PositionSampler
+    from ..runtime.assembly import AssemblyModel
+    from ..runtime.servo_angles import MirrorLiftProfile
+    from ..runtime.session import Capture
+    from ..sim.scene import SensorPose
 
 __all__ = ["DEFAULT_SENSOR_HEIGHT_M", "scans_from_capture", "scans_from_recording",
            "LiveScans"]
@@ -32,9 +42,10 @@ __all__ = ["DEFAULT_SENSOR_HEIGHT_M", "scans_from_capture", "scans_from_recordin
 _PLACEHOLDER_M = 1.0  # any valid range: the assembly keeps the beam, its NaN is restored
 
 
-def scans_from_capture(model, scans, joints, lift_profiles=(None, None), *,
+def scans_from_capture(model: AssemblyModel, scans: Sequence[Any], joints: Mapping[str, Any],
+                       lift_profiles: Sequence[MirrorLiftProfile | None] = (None, None), *,
                        sensor_height_m: float = DEFAULT_SENSOR_HEIGHT_M,
-                       first_index: int = 0, pose=None,
+                       first_index: int = 0, pose: SensorPose | None = None,
                        truth_id: np.ndarray | None = None) -> list[ScanPoints]:
     """Runtime scans + servo samples -> one :class:`ScanPoints` per scan with any beam kept.
 
@@ -42,8 +53,8 @@ def scans_from_capture(model, scans, joints, lift_profiles=(None, None), *,
     ----------
     model : nodlidar.runtime.assembly.AssemblyModel
         The design's BeamModels, calibration applied.
-    scans : list of driver Scans (``steps``, ``ranges_m``, ``stamp_s``)
-    joints : dict
+    scans : sequence of driver Scans (or anything with ``steps``, ``ranges_m``, ``stamp_s``)
+    joints : mapping
         ``"nod"`` (required), ``"mirror_left"``, ``"mirror_right"``: servo samples
         (anything :class:`~nodlidar.runtime.assembly.AngleSamples` takes).
     lift_profiles : (MirrorLiftProfile or None, MirrorLiftProfile or None)
@@ -78,6 +89,8 @@ def scans_from_capture(model, scans, joints, lift_profiles=(None, None), *,
     missing = grid[scan_i, step - lidar.step_min]
     rng = np.where(missing, np.nan, cloud.range_m)
     nod, lifted = cloud.nod_rad, cloud.lifted  # as the assembly decided them for each beam
+    # assemble() always fills both (None only in clouds from elsewhere)
+    assert nod is not None and lifted is not None
     start, direc, off = np.empty((len(t), 3)), np.empty((len(t), 3)), np.empty(len(t))
     for bm, sel in ((model.deployed, ~lifted), (model.lifted, lifted)):
         if sel.any():
@@ -106,7 +119,7 @@ def scans_from_capture(model, scans, joints, lift_profiles=(None, None), *,
 
 def scans_from_recording(path: str | Path, *,
                          sensor_height_m: float = DEFAULT_SENSOR_HEIGHT_M,
-                         calibration: str | Path | None = None):
+                         calibration: str | Path | None = None) -> tuple[Design, list[ScanPoints]]:
     """Read a recording and return ``(design, [ScanPoints, ...])`` (see the module docstring).
 
     Beams whose nod angle is unknown (outside the servo samples), whose mirror was moving,
@@ -151,12 +164,12 @@ class LiveScans:
     sensor_height_m : float
     """
 
-    def __init__(self, model, lift_profiles, *,
+    def __init__(self, model: AssemblyModel, lift_profiles: Sequence[MirrorLiftProfile | None], *,
                  sensor_height_m: float = DEFAULT_SENSOR_HEIGHT_M) -> None:
         self.model = model
         self.lift_profiles = tuple(lift_profiles)
         self.sensor_height_m = float(sensor_height_m)
-        self.pending: list = []
+        self.pending: list[Any] = []  # driver Scans
         self.n_in = 0  # scans received
         self.n_done = 0  # scans handed on (or dropped) so far
         self._done_until = -np.inf  # last beam time [s] of the scans handed on
@@ -190,7 +203,7 @@ class LiveScans:
         return scans_from_capture(self.model, batch, joints, self.lift_profiles,
                                   sensor_height_m=self.sensor_height_m, first_index=first)
 
-    def on_scan(self, scan, samplers) -> list[ScanPoints]:
+    def on_scan(self, scan: Any, samplers: Mapping[str, PositionSampler]) -> list[ScanPoints]:
         """Add a scan; return the scans the samples read so far cover."""
         self.pending.append(scan)
         self.n_in += 1
@@ -202,6 +215,6 @@ class LiveScans:
             return []
         return self._ready(joints, final=False)
 
-    def finish(self, capture) -> list[ScanPoints]:
+    def finish(self, capture: Capture) -> list[ScanPoints]:
         """The scans still waiting, from the capture's final samples."""
         return self._ready(capture.joints, final=True) if self.pending else []

@@ -38,13 +38,18 @@ the second scan on, the velocity from the entropy refinement (:func:`refine_moti
 from __future__ import annotations
 
 import datetime as _dt
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 from ..errors import require
 from .motion import MotionEstimate, coarse_motion, refine_motion
+
+if TYPE_CHECKING:
+    from .scans import ScanPoints
+    from .segment import OnlineSegmenter, SegmentConfig, Segmented
 
 __all__ = ["TrackerConfig", "TrackState", "Tracker"]
 
@@ -252,16 +257,16 @@ class Tracker:
         The lidar's ``range_sigma_m(r)`` for the online segmenter's carving margin.
     """
 
-    def __init__(self, config: TrackerConfig = TrackerConfig(), segment=None,
-                 range_sigma=None) -> None:
+    def __init__(self, config: TrackerConfig = TrackerConfig(), segment: SegmentConfig | None = None,
+                 range_sigma: Callable[[np.ndarray], np.ndarray | float] | None = None) -> None:
         self.config = config
         self.tracks: dict[int, _Track] = {}
         self.ended: list[_Track] = []
         self._next_id = 1
         self._segment = segment
         self._range_sigma = range_sigma
-        self._segmenter = None
-        self._kf = None
+        self._segmenter: OnlineSegmenter | None = None
+        self._kf: tuple[Any, Any, Any] | None = None  # predictor, updater, LinearGaussian
 
     # -- Stone Soup pieces (imported on first use) -------------------------------------
     def _filters(self):
@@ -348,7 +353,7 @@ class Tracker:
         T = np.array(tr.t_centroids[-cfg.window_scans:])
         if np.ptp(T) <= 0:
             return
-        tr.coarse = coarse_motion(C, T)
+        coarse = tr.coarse = coarse_motion(C, T)
         P = np.concatenate(tr.points[-cfg.window_scans:])
         Tp = np.concatenate(tr.times[-cfg.window_scans:])
         if len(P) < 3:
@@ -356,24 +361,26 @@ class Tracker:
         # warm start from the previous refinement (a small search around it), cold from the
         # centroid line: keeps one update well inside the scan period
         warm = tr.motion is not None
-        tr.motion = refine_motion(P, Tp, tr.motion if warm else tr.coarse, entropy=cfg.entropy,
+        guess = tr.motion if tr.motion is not None else coarse
+        warm_grid: dict[str, Any] = {"voxel_grid": cfg.warm_voxel_grid} if warm else {}
+        tr.motion = refine_motion(P, Tp, guess, entropy=cfg.entropy,
                                   sigma_m=cfg.sigma_m, voxel_m=cfg.voxel_m, n_scans=len(tr.scans),
                                   max_points=cfg.max_points,
                                   renyi_method=cfg.renyi_method,
                                   voxel_max_points=cfg.voxel_max_points,
                                   search_m_s=cfg.warm_search_m_s if warm else 0.08,
-                                  **({"voxel_grid": cfg.warm_voxel_grid} if warm else {}))
+                                  **warm_grid)
 
-    def _segmented(self, scan):
-        if hasattr(scan, "objects"):
-            return scan
+    def _segmented(self, scan: Segmented | ScanPoints) -> Segmented:
+        if hasattr(scan, "objects"):  # already segmented (duck-typed, as before)
+            return cast("Segmented", scan)
         from .segment import OnlineSegmenter, SegmentConfig
 
         if self._segmenter is None:
             self._segmenter = OnlineSegmenter(self._segment or SegmentConfig(), self._range_sigma)
         return self._segmenter.update(scan)
 
-    def update(self, seg) -> list[TrackState]:
+    def update(self, seg: Segmented | ScanPoints) -> list[TrackState]:
         """Feed one scan (segmented, or ScanPoints); returns the states that changed."""
         from scipy.optimize import linear_sum_assignment
 
@@ -467,9 +474,9 @@ class Tracker:
             self._add(tr, scan, idx, c, t)
             first = tr.motion is None
             self._estimate(tr)
-            m = tr.motion
-            self._update(tr, prior, c, None if m is None else m.velocity,
-                         None if m is None else m.cov, first_velocity=first)
+            mo = tr.motion
+            self._update(tr, prior, c, None if mo is None else mo.velocity,
+                         None if mo is None else mo.cov, first_velocity=first)
             st = self._state(tr)
             changed.append(st)
         # new clusters within merge_m of each other are pieces of one new object
@@ -535,6 +542,6 @@ class Tracker:
         """Current states of the live tracks."""
         return [self._state(tr) for tr in self.tracks.values()]
 
-    def all_tracks(self) -> list:
+    def all_tracks(self) -> list[_Track]:
         """Live and ended internal tracks (for analysis: points, times, centroids)."""
         return list(self.tracks.values()) + self.ended
