@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -40,6 +40,13 @@ from numpy.typing import ArrayLike
 # rot_y/rot_x: geometry's (the one rotation vocabulary), re-exported for callers here
 from ..geometry import rot_x, rot_y
 from ..hinge import side_lift_axes
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Iterable
+
+    from ..design import Design
+    from ..geometry import MirrorPatch
+    from .servo_angles import MirrorLiftProfile
 
 __all__ = ["BASE_FRAME", "HEAD_FRAME", "LASER_FRAME", "mirror_frame", "POINTFIELD_TYPES",
            "pointcloud2", "pointcloud2_array", "stamp", "quaternion", "quat_axis", "quat_mul",
@@ -60,19 +67,20 @@ def mirror_frame(name: str) -> str:
     return f"mirror_{name}"
 
 
-def stamp(ts, ns: int):
+def stamp(ts: Any, ns: int) -> Any:
     """builtin_interfaces/Time of ``ns`` [ns since the epoch]."""
     return ts.types["builtin_interfaces/msg/Time"](sec=int(ns) // 1_000_000_000,
                                                     nanosec=int(ns) % 1_000_000_000)
 
 
-def quaternion(R) -> tuple[float, float, float, float]:
+def quaternion(R: ArrayLike) -> tuple[float, float, float, float]:
     """(x, y, z, w) of a rotation matrix (a 4-tuple is taken as a quaternion already)."""
-    if len(R) == 4:
-        return tuple(float(v) for v in R)  # type: ignore[return-value]
+    q = np.asarray(R, float)
+    if len(q) == 4:
+        return float(q[0]), float(q[1]), float(q[2]), float(q[3])
     from scipy.spatial.transform import Rotation
 
-    x, y, z, w = Rotation.from_matrix(np.asarray(R, float)).as_quat()
+    x, y, z, w = Rotation.from_matrix(q).as_quat()
     return float(x), float(y), float(z), float(w)
 
 
@@ -83,8 +91,10 @@ def quat_axis(axis: int, a: float) -> tuple[float, float, float, float]:
     return q[0], q[1], q[2], q[3]
 
 
-def quat_mul(p, q) -> tuple[float, float, float, float]:
-    """Hamilton product ``p q`` of (x, y, z, w) quaternions (rotation q first, then p)."""
+def quat_mul(p: Sequence[Any], q: Sequence[Any]) -> tuple[Any, Any, Any, Any]:
+    """Hamilton product ``p q`` of (x, y, z, w) quaternions (rotation q first, then p).
+
+    Components are floats, or arrays of one shape (elementwise: many products at once)."""
     px, py, pz, pw = p
     qx, qy, qz, qw = q
     return (pw * qx + px * qw + py * qz - pz * qy, pw * qy - px * qz + py * qw + pz * qx,
@@ -92,7 +102,7 @@ def quat_mul(p, q) -> tuple[float, float, float, float]:
 
 
 # -- PointCloud2 ---------------------------------------------------------------------------
-def pointcloud2(ts, points: np.ndarray, frame_id: str, stamp_ns: int):
+def pointcloud2(ts: Any, points: np.ndarray, frame_id: str, stamp_ns: int) -> Any:
     """sensor_msgs/PointCloud2 of a packed structured array ``(n,)`` (one row, dense).
 
     Field types must be in :data:`POINTFIELD_TYPES`; field order and offsets are the
@@ -110,7 +120,7 @@ def pointcloud2(ts, points: np.ndarray, frame_id: str, stamp_ns: int):
         point_step=dt.itemsize, row_step=dt.itemsize * len(points), data=data, is_dense=True)
 
 
-def pointcloud2_array(msg) -> np.ndarray:
+def pointcloud2_array(msg: Any) -> np.ndarray:
     """The structured array ``(height * width,)`` of a PointCloud2 (any reader's message
     object with the standard attributes)."""
     dt = np.dtype({"names": [f.name for f in msg.fields],
@@ -126,7 +136,8 @@ def nod_transform(nod_rad: float, pivot_m: Sequence[float] | np.ndarray) -> tupl
     return rot_y(nod_rad), np.asarray(pivot_m, dtype=float)
 
 
-def mirror_joint_frames(patches, design) -> list[tuple[str, np.ndarray, np.ndarray]]:
+def mirror_joint_frames(patches: Iterable[MirrorPatch],
+                        design: Design) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """``laser -> mirror_<name>`` at joint angle 0 for each :class:`MirrorPatch`:
     (name, R (3, 3), t (3,) [m]).
 
@@ -150,7 +161,8 @@ def mirror_joint_frames(patches, design) -> list[tuple[str, np.ndarray, np.ndarr
     return out
 
 
-def mirror_joint_angle(servo_rad, profile, hinge_z_m: float, lift_angle_rad: float) -> np.ndarray:
+def mirror_joint_angle(servo_rad: ArrayLike, profile: MirrorLiftProfile, hinge_z_m: float,
+                       lift_angle_rad: float) -> np.ndarray:
     """Mirror joint angle [rad] (0 deployed) from lift-servo angles [rad]: the fraction of
     the way from ``profile.deployed_rad`` to ``profile.lifted_rad`` (not clipped: the
     carrier turns with the horn) times ``lift_angle_rad``, a positive rotation about the
@@ -167,7 +179,7 @@ def static_transforms(pivot_m: Sequence[float] | np.ndarray) -> list[tuple[str, 
     return [(HEAD_FRAME, LASER_FRAME, np.eye(3), -np.asarray(pivot_m, dtype=float))]
 
 
-def tf_message(ts, transforms: Sequence[tuple[int, str, str, ArrayLike, np.ndarray]]):
+def tf_message(ts: Any, transforms: Sequence[tuple[int, str, str, ArrayLike, np.ndarray]]) -> Any:
     """tf2_msgs/TFMessage of (stamp_ns, parent, child, R, t) tuples (R a 3x3 matrix or an
     (x, y, z, w) quaternion, t [m])."""
     T = ts.types
@@ -194,7 +206,8 @@ def _origin(R: np.ndarray, t: np.ndarray) -> str:
             f'rpy="{r:.12g} {p:.12g} {y:.12g}"/>')
 
 
-def urdf(design, patches=None, *, name: str | None = None) -> str:
+def urdf(design: Design, patches: Iterable[MirrorPatch] | None = None, *,
+         name: str | None = None) -> str:
     """The head as URDF: ``nodlidar_base``, the nod joint (revolute about y through the
     pivot, the design's pitch limits), ``laser`` and one revolute joint per mirror about
     its side's lift axis (:func:`mirror_joint_frames`; limits 0 .. ``lift_angle_rad``)
@@ -262,7 +275,8 @@ class CdrTemplate:
     _SENTINELS = {"<i4": (0x3A5C7E11, 0x3A5C7E12), "<u4": (0xC3A5E1F1, 0xC3A5E1F2),
                   "<f8": (1.2345678901234567e-250, 2.2345678901234567e-250)}
 
-    def __init__(self, ts, msgtype: str, build, fields: dict[str, str]):
+    def __init__(self, ts: Any, msgtype: str, build: Callable[[dict[str, Any]], Any],
+                 fields: dict[str, str]) -> None:
         self.fields = dict(fields)
         # two serialisations with different sentinels: the offsets are where they differ
         # and where the sentinel's bytes are (unique, checked)
