@@ -11,7 +11,9 @@ its outward normal at azimuth ``yaw_rad`` (``yaw = 0``: straight ahead, facing t
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -20,6 +22,10 @@ from ..errors import require
 from ..geometry import BLOCKED, DIRECT, Perturbation, directions_from_bearings
 from .fit import beam_map
 from .walls import WallCapture
+
+if TYPE_CHECKING:
+    from ..design import Design
+    from ..sim.scene import Scene
 
 __all__ = ["WallPose", "DEFAULT_WALLS", "sweep_nod", "synthetic_capture", "synthetic_captures",
            "simulated_capture", "simulated_captures", "scene_captures", "with_range_error"]
@@ -67,7 +73,7 @@ DEFAULT_WALLS: tuple[WallPose, ...] = (
 )
 
 
-def sweep_nod(design, n_scans: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def sweep_nod(design: Design, n_scans: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Steps and per-beam nod angles of one nod sweep (min -> max), all valid steps per scan.
 
     Each beam's nod is the ramp at its own time (:meth:`LidarModel.beam_time_s`), the ramp
@@ -88,7 +94,8 @@ def sweep_nod(design, n_scans: int | None = None) -> tuple[np.ndarray, np.ndarra
     return np.tile(lidar.steps, n_scans), pitch
 
 
-def synthetic_capture(design, wall: WallPose, perturbations: dict[str, Perturbation] | None = None,
+def synthetic_capture(design: Design, wall: WallPose,
+                      perturbations: dict[str, Perturbation] | None = None,
                       *, rng: np.random.Generator | None = None, noise: bool = True,
                       quantum_m: float = 0.001, n_scans: int | None = None,
                       mirrors_deployed: bool = True, name: str = "") -> WallCapture:
@@ -129,16 +136,19 @@ def synthetic_capture(design, wall: WallPose, perturbations: dict[str, Perturbat
                        name=name or f"wall yaw {np.degrees(wall.yaw_rad):+.0f} deg")
 
 
-def synthetic_captures(design, perturbations=None, walls=DEFAULT_WALLS, *, seed: int = 0,
-                       noise: bool = True, **kw) -> list[WallCapture]:
+def synthetic_captures(design: Design, perturbations: dict[str, Perturbation] | None = None,
+                       walls: Iterable[WallPose] = DEFAULT_WALLS, *, seed: int = 0,
+                       noise: bool = True, **kw: Any) -> list[WallCapture]:
     """:func:`synthetic_capture` for each wall, one seeded generator for all."""
     rng = np.random.default_rng(seed)
     return [synthetic_capture(design, w, perturbations, rng=rng, noise=noise, **kw) for w in walls]
 
 
-def simulated_capture(design, wall: WallPose, perturbations: dict[str, Perturbation] | None = None,
+def simulated_capture(design: Design, wall: WallPose,
+                      perturbations: dict[str, Perturbation] | None = None,
                       *, seed: int = 0, noise: bool = True, n_scans: int | None = None,
-                      name: str = "", size_m=(8.0, 4.0), scene=None) -> WallCapture:
+                      name: str = "", size_m: tuple[float, float] = (8.0, 4.0),
+                      scene: Scene | None = None) -> WallCapture:
     """One nodded sweep of ``wall`` by the simulated sensor (:mod:`nodlidar.sim`).
 
     The independent data source: an embree ray tracer with the mirrors as finite
@@ -179,15 +189,17 @@ def simulated_capture(design, wall: WallPose, perturbations: dict[str, Perturbat
                        name=name or f"wall yaw {np.degrees(wall.yaw_rad):+.0f} deg")
 
 
-def simulated_captures(design, perturbations=None, walls=DEFAULT_WALLS, *, seed: int = 0,
-                       noise: bool = True, **kw) -> list[WallCapture]:
+def simulated_captures(design: Design, perturbations: dict[str, Perturbation] | None = None,
+                       walls: Iterable[WallPose] = DEFAULT_WALLS, *, seed: int = 0,
+                       noise: bool = True, **kw: Any) -> list[WallCapture]:
     """:func:`simulated_capture` for each wall (seeds ``seed*100 + k``)."""
     return [simulated_capture(design, w, perturbations, seed=seed * 100 + k, noise=noise, **kw)
             for k, w in enumerate(walls)]
 
 
-def scene_captures(design, scene, yaws_rad, perturbations=None, *, seed: int = 0,
-                   noise: bool = True, **kw) -> list[WallCapture]:
+def scene_captures(design: Design, scene: Scene, yaws_rad: Iterable[float],
+                   perturbations: dict[str, Perturbation] | None = None, *, seed: int = 0,
+                   noise: bool = True, **kw: Any) -> list[WallCapture]:
     """One :func:`simulated_capture` of ``scene`` per sensor heading: the sensor turned by
     ``-yaw`` (so the scene's wall ahead appears at azimuth ``yaw``), seeds ``seed*100 + k``."""
     return [simulated_capture(design, WallPose(1.0, float(y)), perturbations, seed=seed * 100 + k,

@@ -4,14 +4,22 @@ from __future__ import annotations
 
 import argparse
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..errors import ParameterError
 from ..validation import check_number
 from ._args import check_output_path
 
 if TYPE_CHECKING:  # numpy only where used: --help imports no numpy
+    from collections.abc import Sequence
+
     import numpy as np
+
+    from ..geometry import Perturbation
+    from ..runtime.session import Session
+
+    #: What the option helpers add arguments to: a parser or an argument group.
+    ArgContainer = argparse.ArgumentParser | argparse._ArgumentGroup
 
 #: Simulated seconds per wall second. Below 0.01 a sweep of a few simulated seconds takes
 #: minutes (1e-9 hung for ever); above 1000 the emulator cannot keep the pace.
@@ -24,14 +32,14 @@ POSE_MAX_M, POSE_MAX_DEG = 10_000.0, 360.0
 DESIGN_HELP = "design file (default: the paper's build, design/urg04lx-paper.toml)"
 
 
-def add_design_arg(p) -> None:
+def add_design_arg(p: ArgContainer) -> None:
     """``--design TOML``, defaulting to the paper's build wherever the command runs."""
     from .._light import PAPER_DESIGN  # (not paper: --help imports no numpy)
 
     p.add_argument("--design", metavar="TOML", default=str(PAPER_DESIGN), help=DESIGN_HELP)
 
 
-def add_device_args(p, *, design: bool = True, scene: str | None = None,
+def add_device_args(p: ArgContainer, *, design: bool = True, scene: str | None = None,
                     scans: bool = True) -> None:
     """--design, --port, --servo-port, --calibration, --plausibility (``scans``: the command
     reads scans) and the simulated-sensor options (``scene``: the simulated sensor's default
@@ -69,7 +77,7 @@ def _stderr(msg: str) -> None:
     status(msg)
 
 
-def session_from_args(args, **kw):
+def session_from_args(args: argparse.Namespace, **kw: Any) -> Session:
     """The :class:`~nodlidar.runtime.session.Session` the options describe (``kw`` go to
     it too, e.g. ``seed``); its status and progress lines go to stderr."""
     from ..runtime.session import Session
@@ -82,7 +90,7 @@ def session_from_args(args, **kw):
                    plausibility=getattr(args, "plausibility", False), log=_stderr, **kw)
 
 
-def check_sim_options(args) -> None:
+def check_sim_options(args: argparse.Namespace) -> None:
     """Refuse a ``--sim-rate`` out of bounds, and simulated-sensor options given with real
     devices (``--port``/``--servo-port``): they would be silently ignored."""
     # checked here rather than by argparse so that main() returns 2 (in-process callers)
@@ -119,7 +127,7 @@ def check_port_url(url: str | None, option: str) -> None:
                                           "(socket://host:port, rfc2217://host:port, loop://)")
 
 
-def sim_perturbations(name: str):
+def sim_perturbations(name: str) -> dict[str, Perturbation] | None:
     """The simulated sensor's as-built mirror errors by name (``none`` or ``table1``)."""
     if name == "none":
         return None
@@ -142,7 +150,7 @@ class _RenamedFlag(argparse.Action):
         parser.error(renamed_hint(self.dest, "--"))
 
 
-def add_frame_args(p) -> None:
+def add_frame_args(p: ArgContainer) -> None:
     """--frame, --robot-from-sensor and --world-from-robot (the old --robot2sensor and
     --world2robot answer with a hint)."""
     p.add_argument("--frame", choices=("sensor", "robot", "world"), default="sensor",
@@ -159,7 +167,7 @@ def add_frame_args(p) -> None:
         p.add_argument(f"--{old}", dest=old, action=_RenamedFlag)
 
 
-def pose_matrix(v, name: str) -> np.ndarray:
+def pose_matrix(v: Sequence[float] | None, name: str) -> np.ndarray:
     """4x4 from x y z [m] roll pitch yaw [deg] (R = Rz(yaw) Ry(pitch) Rx(roll))."""
     import numpy as np  # here, not at module level: --help imports no numpy
 
@@ -178,7 +186,7 @@ def pose_matrix(v, name: str) -> np.ndarray:
     return T
 
 
-def frame_kwargs(args) -> dict:
+def frame_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """The :func:`~nodlidar.runtime.assembly.assemble` keywords of the frame options."""
     return {"frame": args.frame,
             "robot_from_sensor": pose_matrix(args.robot_from_sensor, "--robot-from-sensor"),

@@ -8,7 +8,7 @@ import json
 from ._args import add_force_arg
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "cad", help="export the mirror mounts of a design as STEP/STL + manifest",
         description="Solve a design file and write its mounts (deployed and lifted) to "

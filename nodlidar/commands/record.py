@@ -84,14 +84,17 @@ def run(args: argparse.Namespace) -> int:
     try:
         with session_from_args(args) as s:
             cal_toml = s.calibration_path.read_text() if s.calibration_path else None
+            urg = s.urg
+            # set by Session.open (the with statement); params/clock_sync by the driver's open
+            assert urg is not None and urg.params is not None and urg.clock_sync is not None
             if out.exists():  # --force on a bag folder (checked above): replaced now
                 shutil.rmtree(out)
             rec = BagRecorder(args.out, s.design_path.read_text(), calibration_toml=cal_toml,
                               lift_left=s.lift_left, lift_right=s.lift_right,
                               storage=args.storage, clock=s.time_source,
-                              extra={"dmin_mm": int(s.urg.params.dmin_mm),
+                              extra={"dmin_mm": int(urg.params.dmin_mm),
                                      "simulated": s.simulated,
-                                     "clock_offset_s": s.urg.clock_sync.offset_s})
+                                     "clock_offset_s": urg.clock_sync.offset_s})
             with rec:
                 # the live cloud is assembled scan by scan and streamed to the file
                 res = record_capture(s, rec, stop, lift=args.lift, cloud=args.cloud,

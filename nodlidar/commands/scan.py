@@ -37,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
     kw = frame_kwargs(args)
     with session_from_args(args) as s:
         cap = s.sweep(lift=args.lift)
+        assert s.model is not None  # set by Session.open (the with statement)
         cloud = cap.assemble(s.model, **kw)
     path = write_cloud(args.out, cloud, binary=not args.ascii)
     m = cloud.meta

@@ -75,7 +75,9 @@ def _live(args, step) -> None:
     from ..tracking.recording import LiveScans
 
     with session_from_args(args, seed=args.seed) as s:
-        live = LiveScans(s.model, (s.lift_left, s.lift_right),
+        model = s.model
+        assert model is not None  # set by Session.open (the with statement)
+        live = LiveScans(model, (s.lift_left, s.lift_right),
                          sensor_height_m=args.sensor_height)
 
         def on_scan(scan, samplers) -> None:
@@ -91,7 +93,7 @@ def _live(args, step) -> None:
         for sp in live.finish(cap):
             step(sp)
     print(f"live: tracked {live.n_done} of {live.n_in} scans (calibration "
-          f"{s.model.calibration_id})", file=sys.stderr)
+          f"{model.calibration_id})", file=sys.stderr)
 
 
 MAX_SIM_SCANS = 20_000     # simulated up front: ~35 min of sensor time
