@@ -27,13 +27,24 @@ live tracker reported at the time (causal):
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..errors import require
 from .segment import SegmentConfig
 from .tracker import Tracker, TrackerConfig
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from ..design import Design
+    from ..geometry import Perturbation
+    from ..sim.raycast import SceneSimulator
+    from ..sim.scene import Scene
 
 __all__ = ["V_TOL_M_S", "HEADING_TOL_DEG", "mover_truth", "OnlineResult", "run_online",
            "evaluate", "online_convergence", "compare_mirrors", "comparison_markdown"]
@@ -42,7 +53,7 @@ V_TOL_M_S = 0.01
 HEADING_TOL_DEG = 2.0
 
 
-def mover_truth(scene, t_s) -> tuple[np.ndarray, np.ndarray]:
+def mover_truth(scene: Scene, t_s: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Ground-plane positions and velocities of every mover of ``scene`` at times ``t_s``.
 
     Returns
@@ -79,7 +90,7 @@ class OnlineResult:
     tracks' (t_s, x, y). ``update_s``: wall time of each ``Tracker.update`` [s].
     """
 
-    scene: object
+    scene: Scene
     mirrors_deployed: bool
     entropy: str
     seed: int
@@ -90,10 +101,11 @@ class OnlineResult:
     update_s: list[float] = field(default_factory=list)
 
 
-def run_online(design, scene, n_scans: int, *, mirrors_deployed: bool = True, seed: int = 0,
+def run_online(design: Design, scene: Scene | str | Path, n_scans: int, *,
+               mirrors_deployed: bool = True, seed: int = 0,
                entropy: str = "renyi", noise: bool = True, tracker: TrackerConfig | None = None,
-               segment: SegmentConfig | None = None, simulator=None,
-               perturbations=None) -> OnlineResult:
+               segment: SegmentConfig | None = None, simulator: SceneSimulator | None = None,
+               perturbations: Mapping[str, Perturbation] | None = None) -> OnlineResult:
     """Simulate ``scene`` and run the tracker online on it (module docstring)."""
     import dataclasses
     import time
@@ -208,7 +220,8 @@ def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
             "update_ms_max": round(float(np.max(upd)), 2) if len(upd) else None}
 
 
-def compare_mirrors(design, scene, seeds, n_scans: int, entropies=("renyi",), **kw) -> list[dict]:
+def compare_mirrors(design: Design, scene: Scene | str | Path, seeds: Iterable[int], n_scans: int,
+                    entropies: Sequence[str] = ("renyi",), **kw: Any) -> list[dict]:
     """Mirrors deployed vs lifted on ``scene`` over ``seeds``: one :func:`evaluate` dict per
     (seed, entropy, configuration) (``kw`` go to :func:`run_online`)."""
     from ..sim.raycast import SceneSimulator

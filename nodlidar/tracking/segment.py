@@ -20,6 +20,7 @@ far only).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -132,7 +133,7 @@ class Segmented:
         return [np.flatnonzero(self.dynamic & (self.cluster == c)) for c in labs]
 
 
-def cluster_points(points: np.ndarray, radius_m, min_points: int = 1,
+def cluster_points(points: np.ndarray, radius_m: float | np.ndarray, min_points: int = 1,
                    attach_m: float = 0.0) -> np.ndarray:
     """Euclidean clustering: connected components of the neighbour graph.
 
@@ -177,7 +178,8 @@ def cluster_points(points: np.ndarray, radius_m, min_points: int = 1,
     return lab2
 
 
-def new_map(cfg: SegmentConfig, range_sigma=None) -> VoxelMap:
+def new_map(cfg: SegmentConfig,
+            range_sigma: Callable[[np.ndarray], np.ndarray | float] | None = None) -> VoxelMap:
     """An empty :class:`VoxelMap` for ``cfg``."""
     return VoxelMap(VoxelGrid(cfg.voxel_m), margin_voxels=cfg.margin_voxels, range_sigma=range_sigma,
                     carve_no_return_m=cfg.carve_no_return_m)
@@ -223,7 +225,7 @@ def classify(vmap: VoxelMap, scan: ScanPoints, cfg: SegmentConfig) -> Segmented:
 
 
 def segment_batch(scans: list[ScanPoints], cfg: SegmentConfig = SegmentConfig(),
-                  range_sigma=None) -> list[Segmented]:
+                  range_sigma: Callable[[np.ndarray], np.ndarray | float] | None = None) -> list[Segmented]:
     """Segment a whole recording: the map holds every scan's evidence before classifying."""
     vmap = new_map(cfg, range_sigma)
     for s in scans:
@@ -241,7 +243,8 @@ class OnlineSegmenter:
     re-sorts all of it).
     """
 
-    def __init__(self, cfg: SegmentConfig = SegmentConfig(), range_sigma=None,
+    def __init__(self, cfg: SegmentConfig = SegmentConfig(),
+                 range_sigma: Callable[[np.ndarray], np.ndarray | float] | None = None,
                  window_scans: int | None = 60) -> None:
         self.cfg = cfg
         if window_scans is None:

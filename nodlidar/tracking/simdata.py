@@ -15,10 +15,23 @@ beam, so that :mod:`nodlidar.tracking.voxels` can carve free space.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ..errors import require
 from .scans import ScanPoints  # re-exported: it was defined here
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from ..beams import BeamModel
+    from ..design import Design
+    from ..geometry import Perturbation
+    from ..runtime.assembly import AssemblyModel
+    from ..sim.raycast import SceneSimulator
+    from ..sim.scene import Scene, SensorPose
 
 __all__ = ["ScanPoints", "project_scan", "simulate_scans", "synthetic_scans"]
 
@@ -31,8 +44,9 @@ def _world(pose, p_sensor: np.ndarray, t: np.ndarray, direction: bool = False) -
     return pose.to_world(p_sensor, t)
 
 
-def project_scan(beam_model, scan: int, steps: np.ndarray, range_m: np.ndarray, t_s: np.ndarray,
-                 nod_rad: np.ndarray, pose=None, truth_id: np.ndarray | None = None) -> ScanPoints:
+def project_scan(beam_model: BeamModel, scan: int, steps: np.ndarray, range_m: np.ndarray,
+                 t_s: np.ndarray, nod_rad: np.ndarray, pose: SensorPose | None = None,
+                 truth_id: np.ndarray | None = None) -> ScanPoints:
     """Project one scan with the runtime beam model and place it in the world.
 
     Parameters
@@ -60,10 +74,11 @@ def project_scan(beam_model, scan: int, steps: np.ndarray, range_m: np.ndarray, 
                       truth_id=truth_id)
 
 
-def simulate_scans(design, n_scans: int, *, mirrors_deployed: bool = True,
-                   scene="paper-tracking", perturbations=None, noise: bool = True,
-                   seed: int = 0, t0_s: float = 0.0, simulator=None,
-                   model=None) -> list[ScanPoints]:
+def simulate_scans(design: Design, n_scans: int, *, mirrors_deployed: bool = True,
+                   scene: Scene | str | Path = "paper-tracking",
+                   perturbations: Mapping[str, Perturbation] | None = None, noise: bool = True,
+                   seed: int = 0, t0_s: float = 0.0, simulator: SceneSimulator | None = None,
+                   model: AssemblyModel | None = None) -> list[ScanPoints]:
     """Simulate ``n_scans`` consecutive scans of ``scene`` (direct simulator API) and
     assemble them as the runtime does.
 
@@ -130,8 +145,9 @@ def _ray_cylinder(o, d, c_xy, radius, z0, z1):
     return np.where(ok, s, np.inf)
 
 
-def synthetic_scans(beam_model, n_scans: int, *, speed_m_s: float = 0.13,
-                    heading_rad: float = np.deg2rad(89.4), start_xy=(2.0, -0.4),
+def synthetic_scans(beam_model: BeamModel, n_scans: int, *, speed_m_s: float = 0.13,
+                    heading_rad: float = np.deg2rad(89.4),
+                    start_xy: Sequence[float] = (2.0, -0.4),
                     radius_m: float = 0.18, height_m: float = 1.0, sensor_z_m: float = 0.4,
                     wall_x_m: float = 4.0, nod_min_rad: float = -0.35, nod_max_rad: float = 0.35,
                     nod_rate_rad_s: float = 0.35, sigma_m: float = 0.0,

@@ -10,10 +10,14 @@ from __future__ import annotations
 
 import datetime as _dt
 from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .tracker import TrackState
+
+if TYPE_CHECKING:
+    from stonesoup.types.track import Track
 
 __all__ = ["to_stonesoup", "from_stonesoup"]
 
@@ -22,7 +26,7 @@ _EPOCH = _dt.datetime(1970, 1, 1, tzinfo=_dt.UTC)
 _PERM = np.array([0, 2, 1, 3])
 
 
-def to_stonesoup(states: Iterable[TrackState], epoch: _dt.datetime = _EPOCH) -> list:
+def to_stonesoup(states: Iterable[TrackState], epoch: _dt.datetime = _EPOCH) -> list[Track]:
     """Group states by track id into ``stonesoup.types.track.Track`` of ``GaussianState``.
 
     Returns a list of Tracks (``Track.id`` = the track id as a string), states in time order.
@@ -47,7 +51,7 @@ def to_stonesoup(states: Iterable[TrackState], epoch: _dt.datetime = _EPOCH) -> 
     return out
 
 
-def from_stonesoup(tracks, epoch: _dt.datetime = _EPOCH) -> list[TrackState]:
+def from_stonesoup(tracks: Iterable[Track], epoch: _dt.datetime = _EPOCH) -> list[TrackState]:
     """Inverse of :func:`to_stonesoup` (scan = -1, counts 0, confirmed = True)."""
     out = []
     for tr in tracks:

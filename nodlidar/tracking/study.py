@@ -28,8 +28,9 @@ always within 0.01 m/s. The paper's 7 vs 9 is not reproduced by either.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,6 +40,15 @@ from .scans import ScanPoints
 from .segment import SegmentConfig, segment_batch
 from .simdata import simulate_scans
 from .tracker import Tracker, TrackerConfig
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from matplotlib.figure import Figure  # noqa: TID251 (types only, never imported at run time)
+
+    from ..design import Design
+    from ..sim.scene import Scene
+    from .segment import Segmented
 
 __all__ = ["table_markdown", "table_csv", "V_TOL_M_S", "HEADING_TOL_DEG", "count_traces",
            "convergence_index", "ConfigResult", "StudyResult", "seed_sweep", "plot_segmentation",
@@ -114,10 +124,10 @@ class StudyResult:
     truth_v_m_s: float
     truth_heading_deg: float
     n_scans: int
-    robot_velocity_m_s: tuple = (0.0, 0.0, 0.0)
+    robot_velocity_m_s: tuple[float, ...] = (0.0, 0.0, 0.0)
 
 
-def _driving(scene, robot_velocity_m_s):
+def _driving(scene: Scene | str | Path, robot_velocity_m_s: Sequence[float] | None) -> Scene:
     """``scene`` with its sensor (the robot) driving at a constant world velocity [m/s]."""
     import dataclasses
 
@@ -127,13 +137,15 @@ def _driving(scene, robot_velocity_m_s):
     if robot_velocity_m_s is None or not any(robot_velocity_m_s):
         return sc
     v = tuple(float(x) for x in robot_velocity_m_s) + (0.0,) * (3 - len(robot_velocity_m_s))
-    return dataclasses.replace(sc, sensor=dataclasses.replace(sc.sensor, velocity_m_s=v[:3]))
+    return dataclasses.replace(sc, sensor=dataclasses.replace(sc.sensor,
+                                                              velocity_m_s=(v[0], v[1], v[2])))
 
 
-def run_config(design, *, mirrors_deployed: bool, n_scans: int = 38, seed: int = 0,
-               noise: bool = True, entropies=("renyi", "voxel"),
+def run_config(design: Design, *, mirrors_deployed: bool, n_scans: int = 38, seed: int = 0,
+               noise: bool = True, entropies: Sequence[str] = ("renyi", "voxel"),
                segment: SegmentConfig | None = None, tracker: TrackerConfig | None = None,
-               scene="paper-tracking", robot_velocity_m_s=None) -> ConfigResult:
+               scene: Scene | str | Path = "paper-tracking",
+               robot_velocity_m_s: Sequence[float] | None = None) -> ConfigResult:
     """Simulate, segment, track and evaluate one configuration.
 
     ``robot_velocity_m_s`` : (vx, vy[, vz]) [m/s], optional
@@ -149,6 +161,7 @@ def run_config(design, *, mirrors_deployed: bool, n_scans: int = 38, seed: int =
     tp = fp = fn = 0
     traces, npts = [], []
     for s in segs:
+        assert s.scan.truth_id is not None  # simulated scans carry the ground truth
         truth = s.scan.truth_id >= 1
         tp += int(np.sum(s.dynamic & truth))
         fp += int(np.sum(s.dynamic & ~truth))
@@ -161,13 +174,19 @@ def run_config(design, *, mirrors_deployed: bool, n_scans: int = 38, seed: int =
         trk.update(s)
     tracks = trk.all_tracks()
     v_true, h_true = TRACKING_SPEED_M_S, TRACKING_HEADING_DEG
-    estimates, conv, final = {}, {}, {}
+    # "scan" holds ints (scan counts) among the floats
+    estimates: dict[str, dict[str, list[float]]] = {}
+    conv: dict[str, dict[str, int | None]] = {}
+    final: dict[str, dict[str, float]] = {}
     cloud: dict[str, np.ndarray] = {}
     best = max(tracks, key=lambda tr: len(tr.scans)) if tracks else None
     k_det = len(best.scans) if best else 0
     for ent in entropies:
-        ks, vs, hs = [], [], []
+        ks: list[float] = []
+        vs: list[float] = []
+        hs: list[float] = []
         for k in range(2, k_det + 1):
+            assert best is not None  # k_det > 0
             C = np.array(best.centroids[:k])
             T = np.array(best.t_centroids[:k])
             P = np.concatenate(best.points[:k])
@@ -199,8 +218,8 @@ def run_config(design, *, mirrors_deployed: bool, n_scans: int = 38, seed: int =
                         list(segs))
 
 
-def run_study(design, n_scans: int = 38, seed: int = 0, noise: bool = True,
-              entropies=("renyi", "voxel"), **kw) -> StudyResult:
+def run_study(design: Design, n_scans: int = 38, seed: int = 0, noise: bool = True,
+              entropies: Sequence[str] = ("renyi", "voxel"), **kw: Any) -> StudyResult:
     """Both configurations, same run otherwise (``kw`` go to :func:`run_config`)."""
     res = [run_config(design, mirrors_deployed=dep, n_scans=n_scans, seed=seed, noise=noise,
                       entropies=entropies, **kw) for dep in (True, False)]
@@ -246,7 +265,8 @@ def table_csv(rows: list[dict]) -> str:
                                          for r in rows]) + "\n"
 
 
-def seed_sweep(design, seeds, n_scans: int = 38, entropies=("renyi",), **kw) -> list[dict]:
+def seed_sweep(design: Design, seeds: Iterable[int], n_scans: int = 38,
+               entropies: Sequence[str] = ("renyi",), **kw: Any) -> list[dict]:
     """Convergence scan ("both") and final errors per noise seed, both configurations: how
     robust the single-run comparison is. One row per (seed, entropy); ``kw`` go to
     :func:`run_config`."""
@@ -265,7 +285,7 @@ def seed_sweep(design, seeds, n_scans: int = 38, entropies=("renyi",), **kw) -> 
     return rows
 
 
-def plot_clouds(result: StudyResult):
+def plot_clouds(result: StudyResult) -> Figure:
     """Figs 10-12 analogue: motion-compensated accumulated object cloud, side (y-z) and top
     (x-y) views, per configuration; magenta direct, cyan mirror-reflected (as the paper's
     Fig. 12). Returns the figure."""
@@ -289,7 +309,8 @@ def plot_clouds(result: StudyResult):
     return fig
 
 
-def plot_segmentation(seg, title: str | None = None):
+def plot_segmentation(seg: Segmented | list[Segmented] | tuple[Segmented, ...],
+                      title: str | None = None) -> Figure:
     """Top view of segmented scans (one ``Segmented`` or a list, accumulated; the paper's
     Figs 11b/12b): static returns grey, dynamic (segmented) red, the ground-truth object
     outlined where known, the ground left out. Returns the figure."""
@@ -303,7 +324,7 @@ def plot_segmentation(seg, title: str | None = None):
     fig, ax = plt.subplots(figsize=(7, 5))
     ax.scatter(pts[stat, 0], pts[stat, 1], s=1, color="0.6", label="static")
     if known:
-        t = np.concatenate([g.scan.truth_id >= 1 for g in segs])
+        t = np.concatenate([np.asarray(g.scan.truth_id) >= 1 for g in segs])  # known: no None
         ax.scatter(pts[t, 0], pts[t, 1], s=30, facecolors="none", edgecolors="k", lw=0.5,
                    label="object (truth)")
     ax.scatter(pts[dyn, 0], pts[dyn, 1], s=6, color="r", label="dynamic (segmented)")
@@ -315,7 +336,7 @@ def plot_segmentation(seg, title: str | None = None):
     return fig
 
 
-def plot_convergence(result: StudyResult):
+def plot_convergence(result: StudyResult) -> Figure:
     """Fig. 13 analogue: v and heading estimates vs scan, both configurations and entropies."""
     import matplotlib.pyplot as plt  # noqa: TID251 (lazy, inside a plot function)
 

@@ -20,7 +20,9 @@ Voxel keys pack ``(i, j, k)`` (21 bits each, offset 2**20) into one int64.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -160,7 +162,8 @@ class VoxelMap:
     """
 
     def __init__(self, grid: VoxelGrid, *, margin_voxels: float = 1.5, sample_fraction: float = 0.5,
-                 range_sigma=None, carve_no_return_m: float = 0.0) -> None:
+                 range_sigma: Callable[[np.ndarray], np.ndarray | float] | None = None,
+                 carve_no_return_m: float = 0.0) -> None:
         require(0 < sample_fraction <= 1, "sample_fraction", sample_fraction, "0 < f <= 1")
         self.grid = grid
         self.margin_voxels = float(margin_voxels)
@@ -177,7 +180,8 @@ class VoxelMap:
         free = r - offset_m - self.margin_voxels * self.grid.voxel_m - 3.0 * sig
         return np.where(np.isfinite(r), free, self.carve_no_return_m)
 
-    def free_keys(self, start, direction, range_m, offset_m) -> np.ndarray:
+    def free_keys(self, start: np.ndarray, direction: np.ndarray, range_m: np.ndarray,
+                  offset_m: np.ndarray) -> np.ndarray:
         """Unique keys of the voxels the rays traverse (before the margin).
 
         The keys of :func:`carve_samples`' points (``grid.keys``), computed axis by axis on
@@ -255,7 +259,7 @@ class WindowVoxelMap(VoxelMap):
     Hits are not kept (the online segmentation only asks about traversals).
     """
 
-    def __init__(self, grid: VoxelGrid, *, window_scans: int = 60, **kw) -> None:
+    def __init__(self, grid: VoxelGrid, *, window_scans: int = 60, **kw: Any) -> None:
         super().__init__(grid, **kw)
         require(window_scans >= 1, "window_scans", window_scans, ">= 1")
         self.window_scans = int(window_scans)
@@ -267,7 +271,8 @@ class WindowVoxelMap(VoxelMap):
         """Traversed (scan, voxel) entries kept."""
         return int(sum(len(k) for k in self._keys))
 
-    def integrate(self, scan: int, points, start, direction, range_m, offset_m) -> None:
+    def integrate(self, scan: int, points: np.ndarray, start: np.ndarray, direction: np.ndarray,
+                  range_m: np.ndarray, offset_m: np.ndarray) -> None:
         fk = self.free_keys(start, direction, range_m, offset_m)  # sorted, unique
         self._scans.append(int(scan))
         self._keys.append(fk)
@@ -275,7 +280,8 @@ class WindowVoxelMap(VoxelMap):
             self._scans.pop(0)
             self._keys.pop(0)
 
-    def inconsistent(self, points: np.ndarray, scan, min_scan_gap: int = 1) -> np.ndarray:
+    def inconsistent(self, points: np.ndarray, scan: int | np.ndarray,
+                     min_scan_gap: int = 1) -> np.ndarray:
         keys = self.grid.keys(points)
         k = np.asarray(scan)
         out = np.zeros(len(keys), bool)
