@@ -85,6 +85,7 @@ class MotionEstimate:
 
 
 def velocity_from_motion(v: float, heading: float) -> np.ndarray:
+    """Speed [m/s] and heading [rad] -> (2,) ground-plane velocity (vx, vy) [m/s]."""
     return np.array([v * np.cos(heading), v * np.sin(heading)])
 
 
