@@ -82,7 +82,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -94,6 +94,10 @@ from ..errors import CalibrationError, require
 from ..geometry import BLOCKED, CLEAR, DIRECT, Perturbation, pitch_about_pivot
 from ..verify import verify
 from .walls import Plane, WallCapture, check_wall_orientations, fit_plane_msac
+
+if TYPE_CHECKING:
+    from ..design import Design
+    from ..spec import DesignSpec
 
 __all__ = ["CalibrationConfig", "calibration_config", "ResidualStats", "MirrorFit",
            "CaptureFit", "CalibrationResult", "calibrate", "fit_planes", "beam_map", "MODELS",
@@ -159,7 +163,7 @@ class CalibrationConfig:
         return np.array([self.max_sigma_dalpha_rad, self.max_sigma_dbeta_rad, self.max_sigma_dd_m])
 
 
-def calibration_config(source=None) -> CalibrationConfig:
+def calibration_config(source: DesignSpec | dict[str, Any] | None = None) -> CalibrationConfig:
     """The ``[calibration]`` table of a DesignSpec (or a dict); defaults where absent."""
     if source is None:
         table: dict[str, Any] = {}
@@ -173,7 +177,7 @@ def calibration_config(source=None) -> CalibrationConfig:
     return CalibrationConfig(**table)
 
 
-def design_hash(spec) -> str:
+def design_hash(spec: DesignSpec) -> str:
     """Short hash [16 hex] of a design's geometric parameters (lidar, layout, placement,
     mirror, nod) - not its name, description, reference numbers or tool tables, which do
     not change the geometry a calibration belongs to."""
@@ -375,7 +379,7 @@ def _true_range(r: np.ndarray, intr: np.ndarray | None) -> np.ndarray:
     return (r - intr[0]) / (1.0 + intr[1])
 
 
-def fit_planes(design, captures: list[WallCapture], config: CalibrationConfig,
+def fit_planes(design: Design, captures: list[WallCapture], config: CalibrationConfig,
                direct: np.ndarray | None = None, intrinsics: np.ndarray | None = None
                ) -> list[CaptureFit]:
     """Robust (MSAC) plane of each capture's direct beams (independent of the mirrors).
@@ -407,7 +411,7 @@ def fit_planes(design, captures: list[WallCapture], config: CalibrationConfig,
     return out
 
 
-def beam_map(design, perturbations: dict[str, Perturbation] | None) -> np.ndarray:
+def beam_map(design: Design, perturbations: dict[str, Perturbation] | None) -> np.ndarray:
     """(n_steps,) int over the valid steps: the mirror each beam reaches with the mirrors
     perturbed (``DIRECT`` none; ``BLOCKED`` reflected but blocked on its way out, by
     another mirror or the housing), by the same trace as the runtime assembly's
@@ -885,7 +889,7 @@ def _fit_joint(design, dcands: list[tuple], fits: list[CaptureFit], robust: dict
     return theta, cov, joint, J, direct_used, used
 
 
-def ambiguous_steps(design, perturbations: dict[str, Perturbation], names: list[str],
+def ambiguous_steps(design: Design, perturbations: dict[str, Perturbation], names: list[str],
                     cov: np.ndarray, k_sigma: float = 3.0) -> np.ndarray:
     """Steps whose mirror (or none/blocked) changes within ``k_sigma`` of the fit.
 
@@ -910,7 +914,7 @@ def ambiguous_steps(design, perturbations: dict[str, Perturbation], names: list[
     return np.flatnonzero(changed) + design.lidar.step_min
 
 
-def calibrate(design, captures: list[WallCapture], *, model: str = "exact",
+def calibrate(design: Design, captures: list[WallCapture], *, model: str = "exact",
               config: CalibrationConfig | None = None, mirrors: list[str] | None = None,
               x0: dict[str, Perturbation] | None = None,
               intrinsics: bool | tuple[str, ...] = False,

@@ -12,17 +12,27 @@ dropped too: the fit maps the reflected windows' steps through the deployed mirr
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 
 from ..errors import CalibrationError
 from .walls import WallCapture
 
+if TYPE_CHECKING:
+    from ..design import Design
+    from ..runtime.assembly import ScanBatch
+    from ..runtime.servo_angles import MirrorLiftProfile
+    from ..runtime.session import Capture
+
 __all__ = ["capture_from_scans", "capture_from_capture", "capture_from_recording"]
 
 
-def capture_from_scans(design, scans, nod, *, mirror_left=None, mirror_right=None,
-                       lift_left=None, lift_right=None, mirrors_deployed: bool = True,
-                       name: str = "") -> WallCapture:
+def capture_from_scans(design: Design, scans: ScanBatch, nod: Any, *, mirror_left: Any = None,
+                       mirror_right: Any = None, lift_left: MirrorLiftProfile | None = None,
+                       lift_right: MirrorLiftProfile | None = None,
+                       mirrors_deployed: bool = True, name: str = "") -> WallCapture:
     """A wall capture from a runtime ``ScanBatch`` and servo samples.
 
     Parameters
@@ -63,7 +73,7 @@ def capture_from_scans(design, scans, nod, *, mirror_left=None, mirror_right=Non
                        nod_rad=nod_rad[keep], mirrors_deployed=mirrors_deployed, name=name)
 
 
-def capture_from_capture(design, capture, *, name: str = "") -> WallCapture:
+def capture_from_capture(design: Design, capture: Capture, *, name: str = "") -> WallCapture:
     """A wall capture from a live :class:`~nodlidar.runtime.session.Capture` (a sweep)."""
     from ..runtime.assembly import ScanBatch
 
@@ -76,7 +86,8 @@ def capture_from_capture(design, capture, *, name: str = "") -> WallCapture:
                               name=name)
 
 
-def capture_from_recording(path, design=None, *, name: str = ""):
+def capture_from_recording(path: str | Path, design: Design | None = None, *,
+                           name: str = "") -> tuple[Design, WallCapture]:
     """A wall capture from a recording made by ``nodlidar record`` (a ROS 2 bag).
 
     Beam times, nod angles and mirror states are found as in the runtime assembly: beams
@@ -96,8 +107,6 @@ def capture_from_recording(path, design=None, *, name: str = ""):
     -------
     (Design, WallCapture)
     """
-    from pathlib import Path
-
     from ..runtime.assembly import ScanBatch
     from ..runtime.bag import design_from_header, read_recording
     from .fit import design_hash

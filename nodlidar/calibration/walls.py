@@ -10,6 +10,7 @@ against which the reflected beams are calibrated.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -317,17 +318,15 @@ def check_wall_orientations(planes: list[Plane], names: list[str], *, min_walls:
     return len(reps)
 
 
-def save_capture(path, capture: WallCapture) -> None:
+def save_capture(path: str | Path, capture: WallCapture) -> None:
     """Write a capture as ``.npz`` (steps, ranges_m, nod_rad, mirrors_deployed, name)."""
     np.savez_compressed(path, steps=capture.steps, ranges_m=capture.ranges_m,
                         nod_rad=capture.nod_rad, mirrors_deployed=capture.mirrors_deployed,
                         name=capture.name)
 
 
-def load_capture(path) -> WallCapture:
+def load_capture(path: str | Path) -> WallCapture:
     """Read a capture written by :func:`save_capture`."""
-    from pathlib import Path
-
     from ..errors import DesignFileError
 
     p = Path(path)
