@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..closed_form import eq1_bearing_on_arc
 from ..design import Design
@@ -194,7 +195,7 @@ class DriftResult:
         return rows
 
 
-def bearing_drift(design: Design, ranges_m=None,
+def bearing_drift(design: Design, ranges_m: ArrayLike | None = None,
                   perturbations: dict[str, Perturbation] | None = None) -> DriftResult:
     """Actual bearing of every reflected beam on arcs of radius ``ranges_m``.
 
@@ -283,7 +284,7 @@ class InterleaveResult:
         return out
 
 
-def interleave(design: Design, ranges_m=(0.4, 1.0, 2.0, 6.0),
+def interleave(design: Design, ranges_m: ArrayLike = (0.4, 1.0, 2.0, 6.0),
                perturbations: dict[str, Perturbation] | None = None) -> InterleaveResult:
     """Landing points of all direct and reflected beams on arcs of radius ``ranges_m``.
 

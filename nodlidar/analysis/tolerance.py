@@ -54,11 +54,12 @@ import math
 import os
 import signal
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .._light import MAX_SAMPLES  # defined without numpy: the CLI parser shows it
 from ..design import Design
@@ -470,7 +471,7 @@ def _trace_mirror(md: _MirrorData, dm: np.ndarray, dl: np.ndarray, ranges: np.nd
 
 
 def trace_samples(design: Design, mirror_errors: np.ndarray, lidar_errors: np.ndarray | None = None,
-                  ranges_m=(2.0,)) -> list[SampleTrace]:
+                  ranges_m: ArrayLike = (2.0,)) -> list[SampleTrace]:
     """Trace every mirror's beams for ``n`` sampled builds at once.
 
     Parameters
@@ -585,7 +586,7 @@ class ToleranceResult:
     elevation_max: np.ndarray
     edge_misses: np.ndarray
 
-    def percentiles(self, metric: str, q=None) -> np.ndarray:
+    def percentiles(self, metric: str, q: Sequence[float] | np.ndarray | None = None) -> np.ndarray:
         """Percentiles over samples: ``(len(q), m[, r])``; ``q`` defaults to the spec's."""
         if metric not in METRICS and metric != "edge_misses":
             raise ParameterError("metric", metric, ", ".join([*METRICS, "edge_misses"]))
@@ -626,7 +627,7 @@ def monte_carlo(
     samples: int | None = None,
     seed: int | None = None,
     chunk_size: int | None = None,
-    ranges_m=None,
+    ranges_m: ArrayLike | None = None,
     workers: int | None = None,
     scheduler: str | None = None,
     client: Any = None,
@@ -807,7 +808,9 @@ def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
                         scheduler=scheduler, client=client, processes=processes)
 
 
-def dask_map(fn, shared, args, *, workers=None, scheduler=None, client=None, processes=True):
+def dask_map(fn: Callable[..., Any], shared: Any, args: Sequence[tuple[Any, ...]], *,
+             workers: int | None = None, scheduler: str | None = None, client: Any = None,
+             processes: bool = True) -> Iterator[tuple[int, Any]]:
     """Yield ``(i, fn(shared, *args[i]))`` as the tasks finish on a Dask cluster.
 
     The cluster is the caller's ``client``, or an existing ``scheduler`` (its address
