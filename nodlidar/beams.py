@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .geometry import (
     DIRECT,
@@ -75,7 +76,7 @@ class BeamModel:
 
     @classmethod
     def build(cls, lidar: LidarModel, patches: list[MirrorPatch], mirror_of_step: np.ndarray,
-              pivot=(0.0, 0.0, 0.0)) -> BeamModel:
+              pivot: ArrayLike = (0.0, 0.0, 0.0)) -> BeamModel:
         """Precompute paths; ``mirror_of_step`` may be all ``DIRECT`` (mirrors lifted)."""
         th = lidar.bearing_from_step(lidar.steps)
         dir0 = directions_from_bearings(th)
@@ -141,7 +142,8 @@ class BeamModel:
         nod = np.broadcast_to(np.asarray(nod_rad, dtype=float), r.shape)
         return pitch_about_pivot(p, nod, self.pivot)
 
-    def rays(self, steps: np.ndarray, nod_rad: np.ndarray | float | None = None):
+    def rays(self, steps: np.ndarray, nod_rad: np.ndarray | float | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Outgoing rays of ``steps``: ``(start (n,3), direction (n,3), path offset (n,))``.
 
         A point at measured range ``r`` is ``start + (r - offset) * direction``; useful for

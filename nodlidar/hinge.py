@@ -32,12 +32,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import require
 from .geometry import TOL, MirrorPatch, matrix_from_axis_angle, rotate_about_line, unit
+
+if TYPE_CHECKING:
+    from .design import Design
 
 __all__ = ["SIDES", "LiftAxis", "side_lift_axes", "face_ends", "lift_fraction", "lifted_patch",
            "lifted_points"]
@@ -167,7 +170,7 @@ def _axis_of_side(side: str, patches: list[MirrorPatch], hinge_z: float,
                     lift_rad=sign * float(lift_angle))
 
 
-def side_lift_axes(design) -> dict[str, LiftAxis]:
+def side_lift_axes(design: Design) -> dict[str, LiftAxis]:
     """The lift axis of each side that has mirrors, keyed by side (``"L"``, ``"R"``).
 
     From the solved (nominal) mirror faces, ``spec.mirror.hinge_z_m`` and

@@ -20,6 +20,7 @@ from .geometry import (
     HOUSING,
     TOL,
     MirrorPatch,
+    Perturbation,
     arc_point,
     bearing_of,
     directions_from_bearings,
@@ -234,7 +235,7 @@ class Verification:
         return out
 
 
-def verify(design: Design, perturbations=None) -> Verification:
+def verify(design: Design, perturbations: dict[str, Perturbation] | None = None) -> Verification:
     """Trace every valid beam of ``design`` (optionally with perturbed mirrors)."""
     lidar = design.lidar
     steps = lidar.steps

@@ -173,7 +173,7 @@ def _min_rect_angle(xy: np.ndarray, params: MountParams) -> tuple[float, float, 
     return best[1], best[2], best[3]
 
 
-def print_orientation(shape, params: MountParams) -> tuple[np.ndarray, Any, np.ndarray]:
+def print_orientation(shape: Any, params: MountParams) -> tuple[np.ndarray, Any, np.ndarray]:
     """``(T, printed, size)``: the largest resting face down, best z rotation, at the corner."""
     pts = _points(shape)
     faces = _resting_faces(shape, pts)

@@ -25,7 +25,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from typing import Literal, NamedTuple
+from typing import TYPE_CHECKING, Literal, NamedTuple
 
 import numpy as np
 import serial
@@ -67,6 +67,9 @@ from .servo_angles import (
     lift_profiles,
     unwrap_tick_ms,
 )
+
+if TYPE_CHECKING:
+    from ..design import Design
 
 __all__ = [
     "NOD_ID",
@@ -742,7 +745,7 @@ class MirrorLift:
         left: MirrorLiftProfile | None = None,
         right: MirrorLiftProfile | None = None,
         *,
-        design=None,
+        design: Design | None = None,
         left_id: int = MIRROR_LEFT_ID,
         right_id: int = MIRROR_RIGHT_ID,
         tolerance_rad: float = 3 * RAD_PER_TICK,

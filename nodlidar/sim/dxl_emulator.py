@@ -48,6 +48,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from nodlidar.dynamixel import (
     BROADCAST_ID,
@@ -537,7 +538,7 @@ class DxlEmulator:
             "servo", servo, f"one of IDs {self.servo_ids} or names {sorted(self._by_name)}"
         )
 
-    def joint_angle(self, servo: int | str, t=None):
+    def joint_angle(self, servo: int | str, t: ArrayLike | None = None) -> float | np.ndarray:
         """True shaft angle [rad] of a servo at simulated time(s) ``t`` [s].
 
         Parameters
@@ -581,7 +582,8 @@ class DxlEmulator:
     def joint_angles(self, t: float | None = None) -> dict[int, float]:
         """True angle [rad] of every servo at simulated time ``t`` (default now)."""
         t = self.clock.now() if t is None else t
-        return {sid: self.joint_angle(sid, t) for sid in self.servo_ids}
+        # a scalar time: each angle is already a float (float() for the type checker)
+        return {sid: float(self.joint_angle(sid, t)) for sid in self.servo_ids}
 
     def set_angle(self, servo: int | str, angle_rad: float) -> None:
         """Force a servo shaft to ``angle_rad`` now (as if moved by hand, torque off)."""
