@@ -57,12 +57,19 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from struct import error as struct_error
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..errors import DesignFileError, NodlidarError, ParameterError
 from .servo_angles import MirrorLiftProfile, lift_profiles
+
+if TYPE_CHECKING:
+    from ..design import Design
+    from ..geometry import Perturbation
+    from ..lidar import LidarModel
+    from .assembly import PointCloud
+    from .urg import Scan
 
 __all__ = ["BagRecorder", "BagContents", "BagWriteError", "read_bag", "read_recording",
            "recover_bag", "replay_bag", "iter_messages", "design_from_header", "STORAGES",
@@ -330,7 +337,7 @@ class BagRecorder:
         self._w.write(conn, t_ns, self._ts.serialize_cdr(msg, msgtype))
 
     # -- messages -------------------------------------------------------------------------
-    def write_scan(self, scan, lidar, stamp_s: float | None = None) -> None:
+    def write_scan(self, scan: Scan, lidar: LidarModel, stamp_s: float | None = None) -> None:
         """One driver :class:`~nodlidar.runtime.urg.Scan` (raw frame, LaserScan; its
         PointCloud2 follows once the servo samples cover it)."""
         try:
@@ -860,7 +867,8 @@ def _read_bag(p: Path, dmin_mm: int | None, name: Path) -> BagContents:
     return BagContents(header, scans, joints, n_ls, False, dict(skipped), n_cloud, storage)
 
 
-def design_from_header(header: dict):
+def design_from_header(header: dict[str, Any]
+                       ) -> tuple[Design, dict[str, Perturbation] | None, str]:
     """The solved Design (and the calibration's perturbations and id) a recording used."""
     import tomllib
 
@@ -902,7 +910,7 @@ def read_recording(path: str | Path) -> BagContents:
     return contents
 
 
-def replay_bag(path: str | Path, **assemble_kw):
+def replay_bag(path: str | Path, **assemble_kw: Any) -> tuple[BagContents, PointCloud]:
     """Read a recording and assemble it like the live session did.
 
     Returns ``(BagContents, PointCloud)``; ``assemble_kw`` go to

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..dynamixel import RAD_PER_TICK, RAD_S_PER_VELOCITY_UNIT, REALTIME_TICK_MODULO
 from ..errors import ParameterError, require
@@ -109,7 +110,7 @@ class NodProfile:
         """Duration of a full nod (up and down) [s]."""
         return 2.0 * self.sweep_time_s
 
-    def angle_at(self, t, t_start: float = 0.0):
+    def angle_at(self, t: ArrayLike, t_start: float = 0.0) -> float | np.ndarray:
         """Ideal nod angle [rad] at time(s) ``t`` [s]: at ``lower`` at ``t_start``, rising.
 
         Vectorised; a triangle wave with turnarounds every :attr:`sweep_time_s`.
@@ -225,9 +226,9 @@ def lift_profiles(design: Design, *, deployed_rad: float = 0.0, rate_rad_s: floa
 
 
 def interpolate_angle(
-    sample_times,
-    sample_angles,
-    query_times,
+    sample_times: ArrayLike,
+    sample_angles: ArrayLike,
+    query_times: ArrayLike,
     *,
     outside: Literal["nan", "clamp", "extrapolate"] = "nan",
 ) -> np.ndarray:
@@ -292,7 +293,7 @@ def interpolate_angle(
     return out
 
 
-def unwrap_tick_ms(tick_ms) -> np.ndarray:
+def unwrap_tick_ms(tick_ms: ArrayLike) -> np.ndarray:
     """Unwrap the servo realtime tick (ms modulo 32768) to seconds since the first sample.
 
     Assumes consecutive samples are less than 32.768 s apart.

@@ -43,9 +43,11 @@ from .assembly import AssemblyModel, PointCloud, ScanBatch, assemble
 if TYPE_CHECKING:
     from ..calibration.calfile import Calibration
     from ..design import Design
+    from ..geometry import Perturbation
     from ..sim.scene import Scene
     from ..sim.sensor import SimulatedSensor
-    from .urg import UrgDriver
+    from .bag import BagRecorder
+    from .urg import Scan, UrgDriver
 
 _T = TypeVar("_T")
 
@@ -136,8 +138,9 @@ class Session:
                  servo_port: str | None = None, calibration: str | Path | None = None,
                  transport: str = "pty", sim_rate: float = 1.0, scene: Scene | str | None = None,
                  noise: bool = True, seed: int = 0, lidar_timeout_s: float = 1.0,
-                 sim_perturbations=None, plausibility: bool = False,
-                 log: Callable[[str], None] | None = None):
+                 sim_perturbations: Mapping[str, Perturbation] | None = None,
+                 plausibility: bool = False,
+                 log: Callable[[str], None] | None = None) -> None:
         if (port is None) != (servo_port is None):
             raise ParameterError("--port/--servo-port", (port, servo_port),
                                  "both (hardware) or neither (the simulated sensor)")
@@ -449,7 +452,7 @@ class LiveAssembler:
             return self._done_until
         return self._span[0][0]
 
-    def add(self, scan, samplers: Mapping[str, PositionSampler]) -> int:
+    def add(self, scan: Scan, samplers: Mapping[str, PositionSampler]) -> int:
         """Queue ``scan``; assemble the queued scans the samples cover. Returns how many
         scans were assembled now."""
         steps = np.asarray(scan.steps)
@@ -602,7 +605,7 @@ class Recorded:
     max_buffered_samples: int = 0
 
 
-def record_capture(session: Session, recorder, stop: Callable[[list, NodController], bool], *,
+def record_capture(session: Session, recorder: BagRecorder, stop: Callable[[list, NodController], bool], *,
                    lift: bool = False, log_every: int = 10, cloud: str | Path | None = None,
                    assemble_kw: Mapping[str, Any] | None = None,
                    on_progress: Callable[[Recorded], None] | None = None) -> Recorded:

@@ -32,8 +32,9 @@ The URG measurement model (:func:`measure`) adds Gaussian range noise with
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -51,6 +52,9 @@ from ..geometry import (
 from ..hinge import LiftAxis, lift_fraction, lifted_patch, side_lift_axes
 from ..lidar import LidarModel
 from .scene import HIT_NONE, HIT_STATIC, Scene, builtin_scene
+
+if TYPE_CHECKING:
+    from ..design import Design
 
 # lift_fraction (nodlidar.hinge) and rotate_about_axis (nodlidar.geometry) are re-exported
 # under their old home for callers that import them from here
@@ -223,8 +227,9 @@ class SceneSimulator:
     Building the embree scenes happens here (CPU work, no I/O).
     """
 
-    def __init__(self, design, scene: Scene | str | None = None,
-                 perturbations: Mapping[str, Perturbation] | None = None, *, max_bounces: int = 2):
+    def __init__(self, design: Design, scene: Scene | str | None = None,
+                 perturbations: Mapping[str, Perturbation] | None = None, *,
+                 max_bounces: int = 2) -> None:
         self.design = design
         self.lidar: LidarModel = design.lidar
         self.scene = scene if isinstance(scene, Scene) else builtin_scene(scene or "room")
@@ -283,7 +288,8 @@ class SceneSimulator:
         return self.lidar.beam_time_s(t_scan_s, steps)
 
     def head_rays(self, steps: np.ndarray, lift_left: np.ndarray | float = 0.0,
-                  lift_right: np.ndarray | float = 0.0):
+                  lift_right: np.ndarray | float = 0.0
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Trace beams off the mirrors in the head frame.
 
         Parameters
@@ -417,7 +423,8 @@ class SceneSimulator:
         pose = self.scene.sensor
         return pose.to_world(p_sensor, t_s), d_sensor @ pose.rotation.T
 
-    def cast_world(self, origins: np.ndarray, dirs: np.ndarray, t_s: np.ndarray):
+    def cast_world(self, origins: np.ndarray, dirs: np.ndarray, t_s: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Nearest hit of world rays among the static world and the movers at times ``t_s``.
 
         Returns ``(distance (n,) [m] inf = none, object_id (n,), part (n,))``.
@@ -491,7 +498,8 @@ class SceneSimulator:
                          part=np.where(hit, part, -1), point_world=pts,
                          range_min_m=self.lidar.range_min_m, range_max_m=self.lidar.range_max_m)
 
-    def scans(self, n_scans: int, *, t0_s: float = 0.0, nod=None,
+    def scans(self, n_scans: int, *, t0_s: float = 0.0,
+              nod: float | Callable[[np.ndarray], np.ndarray] | None = None,
               lift_left: float = 0.0, lift_right: float = 0.0, noise: bool = True,
               seed: int = 0) -> list[ScanTruth]:
         """Simulate ``n_scans`` consecutive scans (the direct API, no emulators).
@@ -515,6 +523,7 @@ class SceneSimulator:
         for i in range(int(n_scans)):
             t_scan = t0_s + i * period
             t = self.beam_times(t_scan)
+            pitch: np.ndarray | float
             if nod is None:
                 pitch = self.design.spec.nod.pitch_at(t)
             elif callable(nod):
