@@ -123,7 +123,7 @@ class Session:
         default ``room``).
     noise : bool
         Simulated range noise.
-    sim_perturbations : dict of str -> Perturbation, optional
+    sim_perturbations : mapping str -> Perturbation, optional
         The simulated sensor's as-built mirror errors (ground truth a calibration should find).
     plausibility : bool
         Drop decoded ranges the sensor cannot have measured (values corrupted in a way the
