@@ -93,7 +93,7 @@ class Capture:
     t_end_s: float = float("nan")
     ticks_ms: dict[str, np.ndarray] = field(default_factory=dict)
 
-    def assemble(self, model: AssemblyModel, **kw) -> PointCloud:
+    def assemble(self, model: AssemblyModel, **kw: Any) -> PointCloud:
         """Assemble every scan (``kw``: frame, robot_from_sensor, world_from_robot...)."""
         require(len(self.scans) > 0, "capture.scans", 0, "at least one scan")
         return assemble(model, ScanBatch.from_scans(self.scans), self.joints["nod"],
@@ -430,7 +430,7 @@ class LiveAssembler:
 
     def __init__(self, model: AssemblyModel, lift_left: MirrorLiftProfile,
                  lift_right: MirrorLiftProfile, sink: Callable[[PointCloud], None], *,
-                 batch_scans: int = 20, **assemble_kw):
+                 batch_scans: int = 20, **assemble_kw: Any) -> None:
         require(batch_scans >= 1, "batch_scans", batch_scans, ">= 1")
         self.model, self.sink = model, sink
         self.lift_left, self.lift_right = lift_left, lift_right
