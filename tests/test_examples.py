@@ -128,16 +128,18 @@ def test_track_live_finds_the_mover(tmp_path):
     scene = load_scene("paper-tracking")
     best = max(confirmed, key=lambda t: t["n_scans"])
     pos, vel = mover_truth(scene, [best["t_s"]])
-    # the tracker follows the visible surface's centroid: up to the radius (0.18 m) in
-    # front of the centre, plus 0.1 m of lag
-    assert np.hypot(best["x_m"] - pos[0, 0, 0], best["y_m"] - pos[0, 0, 1]) < 0.18 + 0.1
-    # The speed, unless the walker turned within the last 3 s: the scene's walker turns
-    # every 12.3 s of simulated time and where the capture starts in that time depends on
-    # how long start-up took (wall time x sim rate), so 1 run in ~13 ends just after a
-    # turn, where a constant-velocity filter's estimate is passing through zero by design
+    # The walker turns every 12.3 s of simulated time, and where the capture starts in that
+    # time depends on how long start-up took (wall time x sim rate): some runs end within
+    # 3 s after a turn, where a constant-velocity filter still carries the old velocity
+    # (it overshoots the turn and its speed passes through zero) by design
     ts = best["t_s"] - np.linspace(0.0, 3.0, 31)
     _, v_recent = mover_truth(scene, ts)
     turned = bool(np.any(v_recent[0] @ vel[0, 0] < 0))
+    # the tracker follows the visible surface's centroid: up to the radius (0.18 m) in
+    # front of the centre, plus 0.1 m of lag; after a turn, plus the overshoot (at most
+    # the walker's speed for the 3 s since)
+    lag = 0.1 + (0.13 * 3.0 if turned else 0.0)
+    assert np.hypot(best["x_m"] - pos[0, 0, 0], best["y_m"] - pos[0, 0, 1]) < 0.18 + lag
     if not turned:
         v_true = float(np.hypot(*vel[0, 0]))
         # issue 18's tolerance: 0.05 m/s (the paper reports ~0.01 m/s after tens of
