@@ -4,6 +4,7 @@ emulators, over a pty and over TCP; accuracy against the simulator's ground trut
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -191,7 +192,11 @@ def test_record_seconds_and_frames(capsys, tmp_path):
                          str(tmp_path / "b"), "--seconds", "1.0")
     assert code == 0, err
     n = int(out.split("recorded ")[1].split()[0])
-    assert 9 <= n <= 12  # 1 s of 10 Hz scans, counted from the first scan's stamp
+    # 1 s of 10 Hz scans, counted from the first scan's stamp: 11 or 12 revolutions, of
+    # which a loaded host may miss some (reported, never silently: 7 recorded was seen at load 3)
+    m = re.search(r"(\d+) scans dropped", err)
+    dropped = int(m.group(1)) if m else 0
+    assert 9 <= n + dropped <= 12 and n >= 2, (n, dropped)
     pose = ["1", "2", "0.5", "0", "0", "90"]
     code, out, err = run(capsys, "replay", str(tmp_path / "b"), "--out", str(tmp_path / "w.ply"),
                          "--frame", "world", "--world-from-robot", *pose)

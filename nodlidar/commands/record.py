@@ -100,6 +100,14 @@ def run(args: argparse.Namespace) -> int:
                 res = record_capture(s, rec, stop, lift=args.lift, cloud=args.cloud,
                                      assemble_kw=kw)
             n_cloud = res.cloud_points
+            # revolutions the device measured but the host never got (a stalled host, a
+            # link outage): the bag has a gap there, which the user should know of
+            dropped = int(urg.stats.dropped_scans)
+            if dropped:
+                from ._output import status
+
+                status(f"{dropped} scans dropped (missing between recorded scans; the bag "
+                       "has gaps there)")
             if not args.json:
                 print(f"recorded {rec.scans} scans and {rec.samples} servo samples to {args.out}")
                 if args.cloud:
@@ -111,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({
             "bag": str(args.out), "storage": rec.storage, "format": rec.header["format"],
-            "scans": rec.scans, "servo_samples": rec.samples,
+            "scans": rec.scans, "dropped_scans": dropped, "servo_samples": rec.samples,
             "point_clouds": rec.clouds_written, "bag_points": rec.points,
             "epoch_offset_ns": rec.epoch_offset_ns, "cloud": args.cloud,
             "cloud_points": n_cloud}, indent=2))
