@@ -192,10 +192,14 @@ def side_lift_axes(design: Design) -> dict[str, LiftAxis]:
     return out
 
 
-def lift_fraction(servo_rad: np.ndarray | float, deployed_rad: float = 0.0,
-                  lifted_rad: float = math.pi / 2) -> np.ndarray:
+def lift_fraction(servo_rad: np.ndarray | float, deployed_rad: float,
+                  lifted_rad: float) -> np.ndarray:
     """How far a side is lifted (0 deployed .. 1 lifted, clipped) at lift-servo angle(s)
-    [rad], linear between the servo's ``deployed_rad`` and ``lifted_rad``."""
+    [rad], linear between the servo's ``deployed_rad`` and ``lifted_rad``.
+
+    Both ends are required: they come from the side's lift profile
+    (``runtime.servo_angles.lift_profiles(design)``), never from a default, so the design
+    file's lift angle is the only one."""
     require(math.isfinite(deployed_rad) and math.isfinite(lifted_rad)
             and lifted_rad != deployed_rad, "lifted_rad", lifted_rad,
             f"a finite servo angle [rad] other than deployed_rad = {deployed_rad!r}")

@@ -240,7 +240,7 @@ def test_partial_lift_is_the_fraction_of_the_rotation(builds):
     half = lifted_patch(lifted_patch(m.patch, ax, 0.5), ax, 0.5)
     assert_allclose(half.corners(), lifted_patch(m.patch, ax, 1.0).corners(), atol=1e-15)
     assert_allclose(lifted_patch(m.patch, ax, 0.0).corners(), m.patch.corners(), atol=1e-15)
-    assert_allclose(lift_fraction([-0.1, 0.0, math.pi / 4, math.pi / 2, 2.0]),
+    assert_allclose(lift_fraction([-0.1, 0.0, math.pi / 4, math.pi / 2, 2.0], 0.0, math.pi / 2),
                     [0.0, 0.0, 0.5, 1.0, 1.0], atol=1e-15)
     with pytest.raises(ParameterError, match="lifted_rad"):
         lift_fraction(0.3, deployed_rad=1.0, lifted_rad=1.0)   # no travel: no fraction

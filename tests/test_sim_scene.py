@@ -249,7 +249,7 @@ def test_nod_ramp_scans_and_moving_sensor(design):
 
 
 def test_lift_fraction_maps_servo_angle():
-    assert_allclose(lift_fraction([-0.1, 0.0, math.pi / 4, math.pi / 2, 2.0]),
+    assert_allclose(lift_fraction([-0.1, 0.0, math.pi / 4, math.pi / 2, 2.0], 0.0, math.pi / 2),
                     [0.0, 0.0, 0.5, 1.0, 1.0], atol=1e-15)
     assert_allclose(lift_fraction(1.0, deployed_rad=2.0, lifted_rad=0.0), 0.5)
 
