@@ -26,10 +26,11 @@ Conventions chosen where the paper is silent (docs/paper-reproduction.md):
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import brentq, minimize_scalar
 
 from .design import Design, MirrorSolution  # the solved-design types (re-exported here)
 from .errors import InfeasibleDesignError, ParameterError
@@ -224,6 +225,142 @@ def _check_slots(plans: list[_Plan], front: np.ndarray, lidar: LidarModel, k: in
 
 
 # ---------------------------------------------------------------------------------------
+# scalar solvers: dependency-free, so solving a design does not import scipy.optimize
+# (~0.5 s of a fresh ``nodlidar design``, issue 16). Both follow scipy's algorithms step
+# for step (the same floating-point operations in the same order), so they return the
+# numbers ``scipy.optimize.brentq`` and ``minimize_scalar(method="bounded")`` return;
+# tests/test_solver_regression.py checks that against scipy itself.
+
+_RTOL_ROOT = 4 * 2.220446049250313e-16  # brentq's smallest (and default) relative tolerance
+
+
+def _brent_root(f: Callable[[float], float], xa: float, xb: float, xtol: float,
+                rtol: float = _RTOL_ROOT, maxiter: int = 100) -> float:
+    """A root of ``f`` in the bracket ``[xa, xb]`` (Brent's method: inverse quadratic or
+    secant steps, bisection when they do not shrink the bracket fast enough).
+
+    Converged when half the bracket is below ``(xtol + rtol*|x|)/2``. The algorithm of
+    scipy's ``brentq`` (Charles Harris's C code), operation for operation.
+    """
+    xpre, xcur = float(xa), float(xb)
+    xblk = fblk = spre = scur = 0.0
+    fpre, fcur = f(xpre), f(xcur)
+    if fpre == 0:
+        return xpre
+    if fcur == 0:
+        return xcur
+    if math.copysign(1.0, fpre) == math.copysign(1.0, fcur):
+        raise ValueError("f(xa) and f(xb) must have different signs")
+    for _ in range(maxiter):
+        if fpre != 0 and fcur != 0 and math.copysign(1.0, fpre) != math.copysign(1.0, fcur):
+            xblk, fblk = xpre, fpre
+            spre = scur = xcur - xpre
+        if abs(fblk) < abs(fcur):  # keep the best estimate in xcur
+            xpre, xcur, xblk = xcur, xblk, xcur
+            fpre, fcur, fblk = fcur, fblk, fcur
+        delta = (xtol + rtol * abs(xcur)) / 2
+        sbis = (xblk - xcur) / 2
+        if fcur == 0 or abs(sbis) < delta:
+            return xcur
+        if abs(spre) > delta and abs(fcur) < abs(fpre):
+            if xpre == xblk:  # interpolate (secant)
+                stry = -fcur * (xcur - xpre) / (fcur - fpre)
+            else:  # extrapolate (inverse quadratic)
+                dpre = (fpre - fcur) / (xpre - xcur)
+                dblk = (fblk - fcur) / (xblk - xcur)
+                stry = -fcur * (fblk * dblk - fpre * dpre) / (dblk * dpre * (fblk - fpre))
+            if 2 * abs(stry) < min(abs(spre), 3 * abs(sbis) - delta):
+                spre, scur = scur, stry  # a good short step
+            else:
+                spre = scur = sbis
+        else:
+            spre = scur = sbis
+        xpre, fpre = xcur, fcur
+        xcur += scur if abs(scur) > delta else (delta if sbis > 0 else -delta)
+        fcur = f(xcur)
+    raise ValueError(f"no convergence in {maxiter} iterations")
+
+
+def _bounded_min(func: Callable[[float], float], lo: float, hi: float, xatol: float,
+                 maxfun: int = 500) -> float:
+    """Minimiser of ``func`` on ``[lo, hi]`` (Brent's golden section with parabolic steps).
+
+    Stops when the point is within ``2*tol - (b - a)/2`` of the bracket's middle,
+    ``tol = sqrt(2.2e-16)*|x| + xatol/3`` (so the answer is good to ~1.5e-8 relative
+    whatever ``xatol`` says), or after ``maxfun`` evaluations. The algorithm of scipy's
+    ``minimize_scalar(method="bounded")``, operation for operation.
+    """
+    sqrt_eps = math.sqrt(2.2e-16)
+    golden_mean = 0.5 * (3.0 - math.sqrt(5.0))
+    a, b = lo, hi
+    fulc = a + golden_mean * (b - a)
+    nfc = xf = fulc
+    rat = e = 0.0
+    x = xf
+    fx = func(x)
+    num = 1
+    ffulc = fnfc = fx
+    xm = 0.5 * (a + b)
+    tol1 = sqrt_eps * abs(xf) + xatol / 3.0
+    tol2 = 2.0 * tol1
+    while abs(xf - xm) > (tol2 - 0.5 * (b - a)):
+        golden = True
+        if abs(e) > tol1:  # try a parabola through the three best points
+            golden = False
+            r = (xf - nfc) * (fx - ffulc)
+            q = (xf - fulc) * (fx - fnfc)
+            p = (xf - fulc) * q - (xf - nfc) * r
+            q = 2.0 * (q - r)
+            if q > 0.0:
+                p = -p
+            q = abs(q)
+            r = e
+            e = rat
+            if abs(p) < abs(0.5 * q * r) and p > q * (a - xf) and p < q * (b - xf):
+                rat = (p + 0.0) / q
+                x = xf + rat
+                if (x - a) < tol2 or (b - x) < tol2:
+                    rat = tol1 * (_sign(xm - xf) + ((xm - xf) == 0))
+            else:
+                golden = True
+        if golden:
+            e = (a - xf) if xf >= xm else (b - xf)
+            rat = golden_mean * e
+        x = xf + (_sign(rat) + (rat == 0)) * max(abs(rat), tol1)
+        fu = func(x)
+        num += 1
+        if fu <= fx:
+            if x >= xf:
+                a = xf
+            else:
+                b = xf
+            fulc, ffulc = nfc, fnfc
+            nfc, fnfc = xf, fx
+            xf, fx = x, fu
+        else:
+            if x < xf:
+                a = x
+            else:
+                b = x
+            if fu <= fnfc or nfc == xf:
+                fulc, ffulc = nfc, fnfc
+                nfc, fnfc = x, fu
+            elif fu <= ffulc or fulc == xf or fulc == nfc:
+                fulc, ffulc = x, fu
+        xm = 0.5 * (a + b)
+        tol1 = sqrt_eps * abs(xf) + xatol / 3.0
+        tol2 = 2.0 * tol1
+        if num >= maxfun:
+            break
+    return xf
+
+
+def _sign(x: float) -> float:
+    """-1.0, 0.0 or 1.0 (``np.sign`` of a float)."""
+    return float(x > 0) - float(x < 0)
+
+
+# ---------------------------------------------------------------------------------------
 # placement
 
 
@@ -297,7 +434,7 @@ def _chained_anchor(name: str, joint: np.ndarray, theta_z: float, m_pt: np.ndarr
             f"anchor beam onto its target")
     # the root nearest the joint's range is the physical one
     i = idx[np.argmin(np.abs(grid[idx] - r0))]
-    return brentq(f, grid[i], grid[i + 1], xtol=1e-15) * u
+    return _brent_root(f, grid[i], grid[i + 1], xtol=1e-15) * u
 
 
 def _errors_for_line(normal: np.ndarray, d: float, thetas: np.ndarray, targets: np.ndarray,
@@ -358,9 +495,7 @@ def _optimise_chained(name, joint, thetas, targets, D, n0):
         n = directions_from_bearings(a)
         return float(np.sqrt(np.mean(_errors_for_line(n, joint @ n, thetas, targets, D) ** 2)))
 
-    sol = minimize_scalar(rms, bounds=(a0 - 0.2, a0 + 0.2), method="bounded",
-                          options={"xatol": 1e-12})
-    return directions_from_bearings(sol.x)
+    return directions_from_bearings(_bounded_min(rms, a0 - 0.2, a0 + 0.2, xatol=1e-12))
 
 
 def solve(spec: DesignSpec, *, check: bool = True) -> Design:

@@ -137,6 +137,56 @@ def test_comparison_detects_a_changed_number():
         _compare(moved, case["solution"], "moved")
 
 
+# the solver's own scalar solvers against scipy's: the same algorithm, operation for
+# operation, so the same float64 answer bit for bit (which is why the fixture still holds
+# to the last bit); functions chosen so both the interpolation/extrapolation and the
+# bisection or golden-section branches run
+ROOT_CASES = [
+    (lambda x: math.cos(x) - x, 0.0, 1.0, 1e-15),
+    (lambda x: x ** 3 - 2 * x - 5, 2.0, 3.0, 2e-12),
+    (lambda x: math.atan(50 * (x - 0.3)), -1.0, 4.0, 1e-15),   # flat far from the root
+    (lambda x: (x - 0.7) ** 3, 0.0, 1.0, 2e-12),                 # a flat, odd root
+    (lambda x: math.expm1(x) - 1e-3, -2.0, 1.0, 1e-15),
+    (lambda x: x - 0.25, 0.25, 1.0, 1e-15),                      # root at the bracket's end
+]
+MIN_CASES = [
+    (lambda x: (x - 0.3) ** 2, -1.0, 1.0, 1e-12),
+    (lambda x: math.cosh(x - 1.2) + 0.1 * x, 0.5, 2.5, 1e-12),
+    (lambda x: abs(x - 0.123), -0.2, 0.2, 1e-12),                 # kink: minimum at the bound
+    (lambda x: math.sin(3 * x) + 0.2 * x * x, -2.0, 1.0, 1e-5),
+    (lambda x: (x * x - 1) ** 2, -0.2, 1.7, 1e-12),
+]
+
+
+@pytest.mark.parametrize("case", range(len(ROOT_CASES)))
+def test_brent_root_equals_scipy_brentq(case):
+    from scipy.optimize import brentq
+
+    from nodlidar.solver import _brent_root
+
+    f, a, b, xtol = ROOT_CASES[case]
+    assert _brent_root(f, a, b, xtol=xtol) == brentq(f, a, b, xtol=xtol)
+
+
+@pytest.mark.parametrize("case", range(len(MIN_CASES)))
+def test_bounded_min_equals_scipy_minimize_scalar(case):
+    from scipy.optimize import minimize_scalar
+
+    from nodlidar.solver import _bounded_min
+
+    f, a, b, xatol = MIN_CASES[case]
+    want = minimize_scalar(f, bounds=(a, b), method="bounded", options={"xatol": xatol}).x
+    assert _bounded_min(f, a, b, xatol=xatol) == want
+
+
+def test_brent_root_refuses_a_bracket_without_a_sign_change():
+    from nodlidar.solver import _brent_root
+
+    with pytest.raises(ValueError, match="different signs"):
+        _brent_root(lambda x: x * x + 1, -1.0, 1.0, xtol=1e-15)
+
+
 if __name__ == "__main__":
     FIXTURE.write_text(json.dumps(_current(), indent=1) + "\n")
     print(f"wrote {FIXTURE}")
+
