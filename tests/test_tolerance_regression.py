@@ -18,6 +18,11 @@ result. Compared:
   is the storage type's resolution, not a change of the model. NaN where there was NaN;
   integer counts equal.
 
+The solved designs are part of the fixtures (``design_*.npz``: every mirror's frame, extent,
+beams and nominal BeamModel rays, as :func:`_problem` extracts them) and are put in place of
+what the solver gives today: this file pins the tolerance computation, not the solver (whose
+own regression test is tests/test_solver_regression.py).
+
 Regenerate the fixtures (only from a trusted implementation!) with
 ``.venv/bin/python tests/test_tolerance_regression.py``.
 """
@@ -61,11 +66,64 @@ MC_CASES = {
 }
 
 
+MIRROR_FIELDS = ("theta", "origin", "normal", "along", "up", "hinge_z", "extent", "t0", "hit0",
+                 "out0")
+
+
 def _design(key: str):
     from nodlidar.solver import solve
     from nodlidar.spec import load_design
 
     return solve(load_design(ROOT / "design" / DESIGNS[key]))
+
+
+def save_mirrors(key: str) -> dict[str, np.ndarray]:
+    """The solved design's mirror data (``_MirrorData``) as ``{mirror/field: array}``."""
+    from nodlidar.analysis.tolerance import _problem, tolerance_spec
+
+    prob = _problem(_design(key), tolerance_spec())
+    return {f"{md.name}/{f}": np.asarray(getattr(md, f)) for md in prob.mirrors
+            for f in MIRROR_FIELDS}
+
+
+@pytest.fixture(autouse=True)
+def pinned_designs(monkeypatch):
+    """Every ``_problem`` built here uses the fixture's mirrors (see the module docstring)."""
+    pin_designs(monkeypatch.setattr)
+
+
+def pin_designs(setattr_) -> None:
+    import dataclasses
+
+    from nodlidar.analysis import tolerance as tol_mod
+
+    real = tol_mod._problem
+    saved = {}
+
+    def problem(design, tol, ranges_m=None):
+        prob = real(design, tol, ranges_m)
+        key = next(k for k, f in DESIGNS.items() if design.spec.name == _names()[k])
+        if key not in saved:
+            saved[key] = np.load(DATA / f"design_{key}.npz")
+        z = saved[key]
+        mirrors = tuple(dataclasses.replace(md, **{
+            f: (float(z[f"{md.name}/{f}"]) if f == "hinge_z" else z[f"{md.name}/{f}"])
+            for f in MIRROR_FIELDS}) for md in prob.mirrors)
+        return dataclasses.replace(prob, mirrors=mirrors)
+
+    setattr_(tol_mod, "_problem", problem)
+
+
+_NAMES: dict[str, str] = {}
+
+
+def _names() -> dict[str, str]:
+    """Design key -> the design's name (from the files, without solving)."""
+    if not _NAMES:
+        from nodlidar.spec import load_design
+
+        _NAMES.update({k: load_design(ROOT / "design" / f).name for k, f in DESIGNS.items()})
+    return _NAMES
 
 
 def _trace_inputs(design, n: int, seed: int):
@@ -177,6 +235,9 @@ def test_monte_carlo_matches_fixture(name):
 
 if __name__ == "__main__":
     DATA.mkdir(parents=True, exist_ok=True)
+    for key in DESIGNS:
+        np.savez_compressed(DATA / f"design_{key}.npz", **save_mirrors(key))
+    pin_designs(setattr)
     for key in DESIGNS:
         np.savez_compressed(DATA / f"trace_{key}.npz", **trace_case(key))
     for name in MC_CASES:
