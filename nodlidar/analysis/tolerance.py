@@ -73,12 +73,11 @@ from ..geometry import (
     directions_from_bearings,
     incidence_angle,
     perturb_frames,
-    ray_circle_exit,
-    reflect,
     reflect_rays,
     rot_x,
     rot_y,
     rot_z,
+    rotate_about_axis,
     wrap_angle,
 )
 from ..spec import DesignSpec
@@ -433,41 +432,232 @@ class SampleTrace:
     on_patch: np.ndarray
 
 
-def _trace_mirror(md: _MirrorData, dm: np.ndarray, dl: np.ndarray, ranges: np.ndarray,
-                  keep_points: bool = True) -> SampleTrace:
-    """Batched equivalent of ``patch.perturbed(...)`` then ``.transformed(...)`` + trace."""
-    # 1-3. the mounting-error model, one frame per sample (the same function as
-    # MirrorPatch.perturbed); 4. into the mis-mounted lidar's frame
+#: Samples traced together inside a chunk: the kernel's (beams, block) working arrays
+#: (~110 x 128 float64 = 110 kB each, ~20 of them) stay near a core's L2 cache. Only the
+#: speed depends on it, never a result (chunks, not blocks, carry the seeds).
+BLOCK_SAMPLES = 128
+
+_EX, _EY, _EZ = np.eye(3)
+
+
+def _lidar_frames(md: _MirrorData, dm: np.ndarray, dl: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each sample's mirror frame in its mis-mounted lidar's frame: origin, normal, along,
+    up, each ``(n, 3)``.
+
+    1-3. the mounting-error model (:func:`~nodlidar.geometry.perturb_frames`, the same
+    function as ``MirrorPatch.perturbed``); 4. a point ``p`` of the assembly is at
+    ``R^T (p - offset)`` in the lidar frame, ``R = rot_z(yaw) rot_y(pitch) rot_x(roll)``
+    (:class:`LidarMount`): turned about z by -yaw, then about y by -pitch, then about x by
+    -roll (``rotate_about_axis`` by columns: no (n, 3, 3) matrices, no BLAS for 3 x 3).
+    """
     o, nrm, along, up = perturb_frames(md.origin, md.normal, md.along, md.up, md.hinge_z,
                                        dm[:, 0], dm[:, 1], dm[:, 2])
-    RmT = np.swapaxes(_mount_rotation(dl[:, 0], dl[:, 1], dl[:, 5]), -1, -2)    # (n,3,3)
-    off = RmT @ dl[:, 2:5, None]
-    o = (RmT @ o[:, :, None] - off)[:, :, 0]
-    nrm = (RmT @ nrm[:, :, None])[:, :, 0]
-    along = (RmT @ along[:, :, None])[:, :, 0]
-    up = (RmT @ up[:, :, None])[:, :, 0]
-    # trace every beam (from O) on every sampled plane
-    d0 = directions_from_bearings(md.theta)               # (b, 3)
-    t = np.sum(o * nrm, -1)[:, None] / (nrm @ d0.T)       # (n, b) distance to the plane
-    hit = t[..., None] * d0[None]                         # (n, b, 3)
-    out = reflect(np.broadcast_to(d0, hit.shape), nrm[:, None, :])
-    rel = hit - o[:, None, :]
-    s = np.sum(rel * along[:, None, :], -1)
-    z = np.sum(rel * up[:, None, :], -1)
-    on = (t > 0) & (s >= md.extent[0]) & (s <= md.extent[1]) & (z >= md.extent[2]) & (z <= md.extent[3])
-    # where each reflected ray leaves the arc (cylinder) of each radius: arc_point's
-    # distance (ray_circle_exit) kept, as the measured path is t + that distance
-    t_arc = np.stack([ray_circle_exit(hit, out, r) for r in ranges], -1)          # (n, b, r)
-    P = hit[:, :, None, :] + t_arc[..., None] * out[:, :, None, :]
-    # measured path length, projected with the nominal (runtime) model
-    r_meas = t[..., None] + t_arc                                                  # (n, b, r)
-    Q = md.hit0[None, :, None, :] + md.out0[None, :, None, :] * (r_meas - md.t0[None, :, None])[..., None]
-    bearing = bearing_of(P)
-    berr = wrap_angle(bearing_of(Q) - bearing)
-    rerr = np.hypot(Q[..., 0], Q[..., 1]) - np.hypot(P[..., 0], P[..., 1])
-    elev = np.arcsin(np.clip(out[..., 2], -1.0, 1.0))
-    return SampleTrace(name=md.name, bearing=bearing, points=P if keep_points else P[..., 2:],
-                       bearing_error=berr, range_error=rerr, elevation=elev, on_patch=on)
+    yaw, pitch, roll = -dl[:, 0], -dl[:, 1], -dl[:, 5]
+
+    def to_lidar(v: np.ndarray) -> np.ndarray:
+        v = rotate_about_axis(v, _EZ, yaw)
+        v = rotate_about_axis(v, _EY, pitch)
+        return rotate_about_axis(v, _EX, roll)
+
+    return to_lidar(o - dl[:, 2:5]), to_lidar(nrm), to_lidar(along), to_lidar(up)
+
+
+class _Sink:
+    """Receives the kernel's columns of samples ``lo:hi``: ``(b, k)`` views of buffers the
+    kernel reuses, so a sink reduces or copies them before it returns (it may overwrite
+    them)."""
+
+    def beams(self, lo: int, hi: int, out_z: np.ndarray, on: np.ndarray) -> None:
+        """``out_z``: z of the reflected directions; ``on``: the hit is on the patch."""
+        raise NotImplementedError
+
+    def arc(self, lo: int, hi: int, j: int, px: np.ndarray, py: np.ndarray, pz: np.ndarray,
+            berr: np.ndarray, rerr: np.ndarray) -> None:
+        """Arc ``j``: the true point P [m], bearing error [rad], range error [m]."""
+        raise NotImplementedError
+
+
+def _trace_kernel(md: _MirrorData, dm: np.ndarray, dl: np.ndarray, ranges: np.ndarray,
+                  sink: _Sink, block: int = BLOCK_SAMPLES) -> None:
+    """Trace one mirror's beams on ``n`` sampled builds, block by block, into ``sink``.
+
+    The one implementation behind :func:`trace_samples` and :func:`monte_carlo`.
+    ``dm (n, 3)``, ``dl (n, 6)`` as in :func:`trace_samples`. Arrays are ``(b, k)`` (beams
+    x samples of a block), x, y and z as separate columns in reused buffers written with
+    ``out=``: no ``(n, b, r, 3)`` temporary exists. Per beam and sample: the distance ``t``
+    along the beam from O (in the scan plane, z = 0) to the sampled plane, the hit point,
+    the reflected direction ``out``, whether the hit is on the patch; per arc radius R: the
+    exit ``t1`` of the reflected ray from the cylinder ``|xy| = R`` (the larger root, as
+    :func:`~nodlidar.geometry.ray_circle_exit`; NaN if it never gets there), the true point
+    ``P``, the point ``Q`` the nominal BeamModel reports for the measured path ``t + t1``,
+    and the errors:
+
+    * bearing ``atan2(P x Q, P . Q)`` (= ``wrap(bearing(Q) - bearing(P))``, one atan2);
+    * range ``|Q_xy| - R`` (``|P_xy| = R`` by construction, to ~1e-16 m).
+    """
+    n, b = len(dm), len(md.theta)
+    fo, fn, fa, fu = (np.ascontiguousarray(v.T) for v in _lidar_frames(md, dm, dl))  # (3, n)
+    cth, sth = np.cos(md.theta)[:, None], np.sin(md.theta)[:, None]      # (b, 1)
+    t0 = md.t0[:, None]
+    h0x, h0y = md.hit0[:, 0:1], md.hit0[:, 1:2]
+    o0x, o0y = md.out0[:, 0:1], md.out0[:, 1:2]
+    s_lo, s_hi, z_lo, z_hi = (float(x) for x in md.extent)
+    radii = [float(r) for r in ranges]
+    k = max(1, min(block, n))
+    fbuf = np.empty((20, b, k))
+    bbuf = np.empty((2, b, k), bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for lo in range(0, n, k):
+            hi = min(lo + k, n)
+            (den, t, hx, hy, ox, oy, oz, w1, w2, a2, a4, bb, nb, c0, disc, t1, px, py, q,
+             qx) = fbuf[:, :, :hi - lo]   # the last, shorter block: views of the same buffers
+            qy = w2
+            on, tmp = bbuf[:, :, :hi - lo]
+            nx, ny, nz = fn[:, None, lo:hi]                                   # (1, k) each
+            cx, cy, cz = fo[:, None, lo:hi]
+            # distance to the plane along each beam: (o . n) / (d0 . n), d0 = (cos, sin, 0)
+            np.multiply(cth, nx, out=den)
+            np.multiply(sth, ny, out=w1)
+            den += w1
+            np.divide(cx * nx + cy * ny + cz * nz, den, out=t)
+            np.multiply(t, cth, out=hx)
+            np.multiply(t, sth, out=hy)
+            # the reflection d0 - 2 (d0 . n) n
+            np.multiply(den, 2.0, out=w2)
+            np.multiply(w2, nx, out=w1)
+            np.subtract(cth, w1, out=ox)
+            np.multiply(w2, ny, out=w1)
+            np.subtract(sth, w1, out=oy)
+            np.multiply(w2, nz, out=oz)
+            np.negative(oz, out=oz)
+            # on the patch: (hit - o) . along in [s_min, s_max] and . up in [z_min, z_max]
+            np.greater(t, 0.0, out=on)
+            for e, lim_lo, lim_hi in ((fa, s_lo, s_hi), (fu, z_lo, z_hi)):
+                ex, ey, ez = e[:, None, lo:hi]
+                np.subtract(hx, cx, out=w1)
+                w1 *= ex
+                np.subtract(hy, cy, out=w2)
+                w2 *= ey
+                w1 += w2
+                w1 -= cz * ez
+                np.greater_equal(w1, lim_lo, out=tmp)
+                on &= tmp
+                np.less_equal(w1, lim_hi, out=tmp)
+                on &= tmp
+            sink.beams(lo, hi, oz, on)
+            # the cylinder |xy| = R: a t1^2 + bq t1 + (|h|^2 - R^2) = 0
+            np.multiply(ox, ox, out=a2)
+            np.multiply(oy, oy, out=w1)
+            a2 += w1                                     # a
+            np.multiply(a2, 4.0, out=a4)
+            a2 *= 2.0
+            np.multiply(hx, ox, out=nb)
+            np.multiply(hy, oy, out=w1)
+            nb += w1
+            nb *= 2.0                                    # bq
+            np.multiply(nb, nb, out=bb)
+            np.negative(nb, out=nb)
+            np.multiply(hx, hx, out=c0)
+            np.multiply(hy, hy, out=w1)
+            c0 += w1
+            for j, r in enumerate(radii):
+                np.subtract(c0, r * r, out=w1)
+                w1 *= a4
+                np.subtract(bb, w1, out=disc)
+                np.sqrt(disc, out=t1)
+                t1 += nb
+                t1 /= a2
+                np.greater_equal(disc, 0.0, out=on)
+                np.greater(t1, 0.0, out=tmp)
+                on &= tmp
+                np.logical_not(on, out=on)
+                np.copyto(t1, np.nan, where=on)
+                np.multiply(t1, ox, out=px)                # P = h + t1 out
+                px += hx
+                np.multiply(t1, oy, out=py)
+                py += hy
+                np.multiply(t1, oz, out=disc)                   # P_z (h_z = 0)
+                # Q = hit0 + out0 (t + t1 - t0), the nominal model's point
+                np.add(t, t1, out=q)
+                q -= t0
+                np.multiply(o0x, q, out=qx)
+                qx += h0x
+                np.multiply(o0y, q, out=qy)
+                qy += h0y
+                # bearing error atan2(P x Q, P . Q) into t1, range error |Q_xy| - R into q
+                np.multiply(px, qy, out=t1)
+                np.multiply(py, qx, out=w1)
+                t1 -= w1
+                np.multiply(px, qx, out=q)
+                np.multiply(py, qy, out=w1)
+                q += w1
+                np.arctan2(t1, q, out=t1)
+                np.multiply(qx, qx, out=q)
+                np.multiply(qy, qy, out=w1)
+                q += w1
+                np.sqrt(q, out=q)
+                q -= r
+                sink.arc(lo, hi, j, px, py, disc, t1, q)
+
+
+class _TraceSink(_Sink):
+    """Keeps every column: the arrays of a :class:`SampleTrace`."""
+
+    def __init__(self, n: int, b: int, r: int) -> None:
+        self.bearing = np.empty((n, b, r))
+        self.points = np.empty((n, b, r, 3))
+        self.bearing_error = np.empty((n, b, r))
+        self.range_error = np.empty((n, b, r))
+        self.elevation = np.empty((n, b))
+        self.on_patch = np.empty((n, b), bool)
+
+    def beams(self, lo, hi, out_z, on):
+        self.elevation[lo:hi] = np.arcsin(np.clip(out_z, -1.0, 1.0)).T
+        self.on_patch[lo:hi] = on.T
+
+    def arc(self, lo, hi, j, px, py, pz, berr, rerr):
+        for i, c in enumerate((px, py, pz)):
+            self.points[lo:hi, :, j, i] = c.T
+        self.bearing[lo:hi, :, j] = np.arctan2(py, px).T
+        self.bearing_error[lo:hi, :, j] = berr.T
+        self.range_error[lo:hi, :, j] = rerr.T
+
+
+class _SummarySink(_Sink):
+    """Reduces over one mirror's beams into ``out``'s rows (the keys of :data:`METRICS`
+    and ``edge_misses`` present in ``out``: ``(n, r)`` or ``(n,)`` views, any dtype)."""
+
+    def __init__(self, out: dict[str, np.ndarray], b: int) -> None:
+        self.out, self.b = out, b
+
+    def beams(self, lo, hi, out_z, on):
+        o = self.out
+        if "elevation_max" in o:   # asin is odd and increasing: max |asin| = asin(max ||)
+            np.abs(out_z, out=out_z)
+            o["elevation_max"][lo:hi] = np.arcsin(np.clip(out_z.max(axis=0), -1.0, 1.0))
+        if "edge_misses" in o:
+            o["edge_misses"][lo:hi] = self.b - np.count_nonzero(on, axis=0)
+
+    def arc(self, lo, hi, j, px, py, pz, berr, rerr):
+        o = self.out
+        if "bearing_error_mean" in o:
+            o["bearing_error_mean"][lo:hi, j] = np.add.reduce(berr, axis=0) / self.b
+        for key, v in (("bearing_error_max", berr), ("range_error_max", rerr),
+                       ("height_max", pz)):
+            if key in o:
+                o[key][lo:hi, j] = np.abs(v, out=v).max(axis=0)
+
+
+def _trace_mirror(md: _MirrorData, dm: np.ndarray, dl: np.ndarray,
+                  ranges: np.ndarray) -> SampleTrace:
+    """Batched equivalent of ``patch.perturbed(...)`` then ``.transformed(...)`` + trace,
+    every array kept (:func:`_trace_kernel`)."""
+    sink = _TraceSink(len(dm), len(md.theta), len(ranges))
+    _trace_kernel(md, dm, dl, ranges, sink)
+    return SampleTrace(name=md.name, bearing=sink.bearing, points=sink.points,
+                       bearing_error=sink.bearing_error, range_error=sink.range_error,
+                       elevation=sink.elevation, on_patch=sink.on_patch)
 
 
 def trace_samples(design: Design, mirror_errors: np.ndarray, lidar_errors: np.ndarray | None = None,
@@ -528,22 +718,30 @@ def _sample(prob: _Problem, n: int, seed: np.random.SeedSequence) -> tuple[np.nd
     return dm, np.c_[dl, roll]
 
 
-def _run_chunk(prob: _Problem, n: int, seed: np.random.SeedSequence) -> dict[str, np.ndarray]:
-    """Evaluate one chunk: per-sample, per-mirror summaries (float32 to keep big runs small)."""
+#: Per-sample arrays of a Monte Carlo result: name -> (dtype, per range?).
+_ARRAYS = {"bearing_error_max": (np.float32, True), "bearing_error_mean": (np.float32, True),
+           "range_error_max": (np.float32, True), "height_max": (np.float32, True),
+           "elevation_max": (np.float32, False), "edge_misses": (np.int32, False)}
+
+
+def _empty(keys: Sequence[str], n: int, m: int, r: int) -> dict[str, np.ndarray]:
+    return {k: np.empty((n, m, r) if _ARRAYS[k][1] else (n, m), _ARRAYS[k][0]) for k in keys}
+
+
+def _run_chunk(prob: _Problem, n: int, seed: np.random.SeedSequence,
+               out: dict[str, np.ndarray] | None = None,
+               keys: Sequence[str] = tuple(_ARRAYS)) -> dict[str, np.ndarray]:
+    """Evaluate one chunk: per-sample, per-mirror summaries (float32 to keep big runs small).
+
+    ``out``: ``(n, m[, r])`` arrays to write into (views of the preallocated result), else
+    new arrays of ``keys`` are returned (what a Dask worker sends back).
+    """
     dm, dl = _sample(prob, n, seed)
-    m, r = len(prob.mirrors), len(prob.ranges)
-    out = {k: np.empty((n, m, r), np.float32)
-           for k in ("bearing_error_max", "bearing_error_mean", "range_error_max", "height_max")}
-    out["elevation_max"] = np.empty((n, m), np.float32)
-    out["edge_misses"] = np.empty((n, m), np.int32)
+    if out is None:
+        out = _empty(keys, n, len(prob.mirrors), len(prob.ranges))
     for i, md in enumerate(prob.mirrors):
-        tr = _trace_mirror(md, dm[:, i], dl, prob.ranges, keep_points=False)
-        out["bearing_error_max"][:, i] = np.max(np.abs(tr.bearing_error), axis=1)
-        out["bearing_error_mean"][:, i] = np.mean(tr.bearing_error, axis=1)
-        out["range_error_max"][:, i] = np.max(np.abs(tr.range_error), axis=1)
-        out["height_max"][:, i] = np.max(np.abs(tr.points[..., 0]), axis=1)
-        out["elevation_max"][:, i] = np.max(np.abs(tr.elevation), axis=1)
-        out["edge_misses"][:, i] = np.count_nonzero(~tr.on_patch, axis=1)
+        sink = _SummarySink({k: v[:, i] for k, v in out.items()}, len(md.theta))
+        _trace_kernel(md, dm[:, i], dl, prob.ranges, sink)
     return out
 
 
@@ -671,30 +869,33 @@ def monte_carlo(
         require(isinstance(workers, int) and workers >= 0, "workers", workers, "an integer >= 0")
     prob = _problem(design, tol)
     sizes = _chunks(tol.samples, tol.chunk_size)
+    starts = np.concatenate([[0], np.cumsum(sizes)])
     seeds = np.random.SeedSequence(tol.seed).spawn(len(sizes))
-    results: list[dict[str, np.ndarray] | None] = [None] * len(sizes)
+    # preallocated: each chunk writes (or is copied) into its rows, nothing is concatenated
+    arrays = _empty(tuple(_ARRAYS), tol.samples, len(prob.mirrors), len(prob.ranges))
     done = 0
     use_dask = client is not None or scheduler is not None or (
         workers is not None and workers > 0) or (workers is None and tol.samples > 20000)
     if not use_dask:
         for i, (n, s) in enumerate(zip(sizes, seeds, strict=True)):
-            results[i] = _run_chunk(prob, n, s)
+            _run_chunk(prob, n, s, out={k: v[starts[i]:starts[i + 1]] for k, v in arrays.items()})
             done += n
             if progress:
                 progress(done, tol.samples)
     else:
+        got = np.zeros(len(sizes), bool)
         for i, res in _dask_chunks(prob, sizes, seeds, workers=workers, scheduler=scheduler,
                                    client=client, processes=processes):
-            results[i] = res
+            for k, v in arrays.items():
+                v[starts[i]:starts[i + 1]] = res[k]
+            got[i] = True
             done += sizes[i]
             if progress:
                 progress(done, tol.samples)
-    chunks = [r for r in results if r is not None]
-    assert len(chunks) == len(results)  # every chunk came back (a failed one raised above)
-    cat = {k: np.concatenate([r[k] for r in chunks]) for k in chunks[0]}
+        assert got.all()  # every chunk came back (a failed one raised above)
     return ToleranceResult(design_name=design.spec.name, tolerance=tol, mirror_names=prob.names,
                            ranges_m=prob.ranges, seed=tol.seed, chunk_size=tol.chunk_size,
-                           n_samples=tol.samples, **cat)
+                           n_samples=tol.samples, **arrays)
 
 
 #: Environment variables Dask's nanny sets in worker processes that we leave unset.
