@@ -3,13 +3,22 @@ paper's four mirrors, per-beam time and nod interpolation, mirror state per side
 frame from interpolated robot poses) vs a bare polar -> xyz conversion of the same number
 of points (the baseline: ``r cos(theta), r sin(theta), 0``, no nod, no mirrors).
 
-Prints points/s of each and the ratio (the cost of the full pipeline per point).
+The two sides are timed interleaved in one process (A, B, A, B, ...), by the process's CPU
+time (``time.process_time``: every thread of the process, so a multithreaded BLAS call
+would be counted in full, yet other processes on a loaded machine are not); the ratio is
+taken per adjacent pair and the median reported. Figures (for benchmarks/run.py):
+
+* ``ratio_vs_bare``, ``points_per_s``: 100 scans (10 s of URG-04LX data, 68 200 beams);
+* ``ratio_vs_bare_scans<N>``, ``points_per_s_scans<N>``: the scaling curve, N = 1, 10,
+  100, 1000 scans in one call.
+
 Run: ``.venv/bin/python benchmarks/bench_assembly.py``.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -20,31 +29,36 @@ from nodlidar.spec import load_design
 
 DESIGN = Path(__file__).resolve().parents[1] / "design" / "urg04lx-paper.toml"
 N_SCANS = 100  # 10 s of URG-04LX scans, 68 200 beams
+SCALING = (1, 10, 100, 1000)
 
 
-def rate(fn, n_points: int, min_time: float = 1.0) -> float:
-    fn()  # warm up
-    n, t0 = 0, time.perf_counter()
-    while True:
-        fn()
-        n += 1
-        dt = time.perf_counter() - t0
-        if dt >= min_time:
-            return n * n_points / dt
+def interleaved(a: Callable[[], object], b: Callable[[], object], min_cpu_s: float = 1.0,
+                min_rounds: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """CPU seconds per call of ``a`` and of ``b``, alternating (after one warm-up each),
+    for at least ``min_cpu_s`` of the two together and ``min_rounds`` pairs."""
+    a()
+    b()
+    ta, tb = [], []
+    while len(ta) < min_rounds or sum(ta) + sum(tb) < min_cpu_s:
+        for fn, out in ((a, ta), (b, tb)):
+            t0 = time.process_time()
+            fn()
+            out.append(time.process_time() - t0)
+    return np.array(ta), np.array(tb)
 
 
-def main() -> dict[str, float]:
-    design = solve(load_design(DESIGN))
-    lidar = design.lidar
-    model = AssemblyModel.from_design(design)
-    rng = np.random.default_rng(0)
-    ranges = rng.uniform(0.3, 5.0, (N_SCANS, lidar.n_steps))
+def setup(model: AssemblyModel, n_scans: int, seed: int = 0):
+    """The benchmark's ``full`` and ``bare`` callables on ``n_scans`` scans, and the
+    number of beams."""
+    lidar = model.lidar
+    rng = np.random.default_rng(seed)
+    ranges = rng.uniform(0.3, 5.0, (n_scans, lidar.n_steps))
     ranges[rng.random(ranges.shape) < 0.03] = np.nan  # error codes
-    t_scan = np.arange(N_SCANS) * lidar.scan_period_s
+    t_scan = np.arange(n_scans) * lidar.scan_period_s
     batch = ScanBatch.from_arrays(lidar.steps, ranges, t_scan)
     t_nod = np.arange(-0.1, t_scan[-1] + 0.3, 0.004)  # nod servo sampled at 250 Hz
     nod = (t_nod, 0.35 * np.sin(t_nod))
-    mirrors = (np.array([-1.0, 100.0]), np.zeros(2))  # deployed all along
+    mirrors = (np.array([-1.0, 1000.0]), np.zeros(2))  # deployed all along
     t_pose = np.arange(-0.1, t_scan[-1] + 0.3, 0.05)
     poses = np.tile(np.eye(4), (len(t_pose), 1, 1))
     poses[:, 0, 3] = 0.5 * t_pose  # driving at 0.5 m/s while turning
@@ -53,7 +67,6 @@ def main() -> dict[str, float]:
     track = PoseTrack(t_pose, poses)
     r2s = np.eye(4)
     r2s[:3, 3] = (0.2, 0.0, 0.4)
-    n_points = batch.ranges_m.size
 
     def full():
         return assemble(model, batch, nod, mirror_left=mirrors, mirror_right=mirrors,
@@ -65,16 +78,37 @@ def main() -> dict[str, float]:
     def bare():
         return np.stack([r * np.cos(theta), r * np.sin(theta), np.zeros_like(r)], -1)
 
+    return full, bare, batch.ranges_m.size
+
+
+def main() -> dict[str, float]:
+    design = solve(load_design(DESIGN))
+    model = AssemblyModel.from_design(design)
+    full, bare, n_points = setup(model, N_SCANS)
     pc = full()
-    r_full = rate(full, n_points)
-    r_bare = rate(bare, n_points)
+    t_full, t_bare = interleaved(full, bare, min_cpu_s=3.0)
+    ratio = t_bare / t_full  # per adjacent pair: same points, so the points/s ratio
+    pps = n_points / np.median(t_full)
     print(f"{N_SCANS} URG-04LX scans = {n_points} beams ({len(pc)} valid points; "
-          f"{int((pc.mirror >= 0).sum())} via mirrors)")
-    print(f"  bare polar -> xyz            : {r_bare / 1e6:8.2f} M points/s")
-    print(f"  assemble (nod, mirrors, world): {r_full / 1e6:8.2f} M points/s")
-    print(f"  ratio (assemble / bare)       : {r_full / r_bare:8.3f}  "
-          f"({r_bare / r_full:.1f}x slower per point)")
-    return {"ratio_vs_bare": r_full / r_bare, "points_per_s": r_full}  # for benchmarks/run.py
+          f"{int((pc.mirror >= 0).sum())} via mirrors); CPU time, interleaved, "
+          f"{len(t_full)} pairs, min / median")
+    print(f"  bare polar -> xyz             : {t_bare.min() * 1e3:7.2f} / "
+          f"{np.median(t_bare) * 1e3:7.2f} ms")
+    print(f"  assemble (nod, mirrors, world): {t_full.min() * 1e3:7.2f} / "
+          f"{np.median(t_full) * 1e3:7.2f} ms  ({pps / 1e6:.2f} M points/s)")
+    print(f"  ratio (assemble / bare)       : {ratio.min():7.3f} / {np.median(ratio):7.3f}")
+    out = {"ratio_vs_bare": float(np.median(ratio)), "points_per_s": float(pps)}
+
+    print("scaling (scans per call: points/s of assemble, ratio vs bare, median):")
+    for n in SCALING:
+        f, b, npts = setup(model, n, seed=n)
+        tf, tb = interleaved(f, b, min_cpu_s=1.0 if n < 1000 else 3.0, min_rounds=5)
+        rr = float(np.median(tb / tf))
+        p = float(npts / np.median(tf))
+        print(f"  {n:5d} scans ({npts:7d} beams): {p / 1e6:6.2f} M points/s, ratio {rr:.3f}")
+        out[f"ratio_vs_bare_scans{n}"] = rr
+        out[f"points_per_s_scans{n}"] = p
+    return out  # for benchmarks/run.py
 
 
 if __name__ == "__main__":

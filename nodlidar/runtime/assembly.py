@@ -25,12 +25,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..beams import DIRECT, BeamModel  # noqa: F401  (BeamModel: type of fields)
+from ..beams import DIRECT, BeamColumns, BeamModel, cos_sin  # noqa: F401  (BeamModel: type of fields)
 from ..dynamixel import RAD_PER_TICK
 from ..errors import ParameterError, require
 from ..frames import check_transform, refuse_renamed
@@ -54,6 +55,8 @@ DEPLOYED, LIFTED, BETWEEN = 0, 1, 2
 # MirrorLift's arrival tolerance; a lift fraction of 0.3 % tilts a reflected beam by a few
 # mrad at most (2 x 0.003 x lift angle), below the URG's beam divergence.
 LIFT_TOLERANCE_RAD = 3 * RAD_PER_TICK
+#: Points projected per chunk: 8 192 float64 = 64 KiB per temporary (see :func:`assemble`).
+CHUNK = 8192
 
 
 @dataclass(frozen=True, eq=False)
@@ -280,29 +283,73 @@ class PoseTrack:
 
     def apply(self, t: np.ndarray, p: np.ndarray) -> np.ndarray:
         """Points ``p`` (n, 3) [m] in the robot frame at times ``t`` (n,) [s] -> world
-        frame: the same interpolated poses as :meth:`at`, applied without building the
-        (n, 4, 4) matrices (Rodrigues' formula on the vectors, then the keyframe rotation
-        column by column) - the costly part of assembly otherwise."""
+        frame (n, 3): the same interpolated poses as :meth:`at`, applied without building
+        the (n, 4, 4) matrices (:meth:`apply_columns`)."""
+        p = np.asarray(p, dtype=float)
+        x, y, z = self.apply_columns(np.asarray(t, dtype=float), p[:, 0], p[:, 1], p[:, 2])
+        out = np.empty((len(x), 3))
+        out[:, 0], out[:, 1], out[:, 2] = x, y, z
+        return out
+
+    @cached_property
+    def _segments(self) -> dict[str, np.ndarray]:
+        """Per keyframe pair i -> i+1, as columns (structure of arrays, one scalar gathered
+        per point each): rotation axis ``k*`` and angle ``th`` of ``R_i^T R_(i+1)`` (zero
+        axis below ``TOL.angle_rad``), the keyframe rotation ``R_i`` by entries ``rJK``,
+        translation ``p*`` and its change ``dp*`` to the next keyframe."""
         from scipy.spatial.transform import Rotation
 
-        t = np.asarray(t, dtype=float)
-        p = np.asarray(p, dtype=float)
         T = np.asarray(self.world_from_robot, float)
-        ts = np.asarray(self.t_s, float)
-        if ts.size == 1:
-            return p @ T[0, :3, :3].T + T[0, :3, 3]
-        tq = np.clip(t, ts[0], ts[-1])
         R = T[:, :3, :3]
         w = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()
-        i = np.clip(np.searchsorted(ts, tq, side="right") - 1, 0, ts.size - 2)
-        f = (tq - ts[i]) / (ts[i + 1] - ts[i])
-        k, th = self._axis_angle(f[:, None] * w[i])  # rotation from keyframe i
-        q = rotate_about_axis(p, k, th)
-        Ri = R[i]  # (n, 3, 3)
-        out = Ri[:, :, 0] * q[:, :1] + Ri[:, :, 1] * q[:, 1:2] + Ri[:, :, 2] * q[:, 2:]
+        k, th = self._axis_angle(w)
+        seg = {"th": th, "kx": k[:, 0].copy(), "ky": k[:, 1].copy(), "kz": k[:, 2].copy()}
         for j in range(3):
-            out[:, j] += np.interp(tq, ts, T[:, j, 3])
-        return out
+            for m in range(3):
+                seg[f"r{j}{m}"] = R[:-1, j, m].copy()
+            seg[f"p{j}"] = T[:-1, j, 3].copy()
+            seg[f"dp{j}"] = np.diff(T[:, j, 3])
+        return seg
+
+    def apply_columns(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`apply` on columns: robot-frame ``x, y, z`` (n,) [m] at times ``t`` (n,)
+        [s] -> world-frame columns.
+
+        Per point: its keyframe pair ``i`` and fraction ``f`` (one ``np.interp`` of the
+        keyframe index), the slerp ``R_i exp(f th_i [k_i])`` as Rodrigues' formula on the
+        vector (the keyframe pair's axis, angle ``f th_i``), then ``R_i`` entry by entry
+        and the linearly interpolated translation: scalar gathers and multiply-adds, no
+        3x3 BLAS products, no (n, 3) gathers.
+        """
+        T = np.asarray(self.world_from_robot, float)
+        n_k = T.shape[0]
+        if n_k == 1:
+            return _affine(T[0], x, y, z)
+        ts = np.asarray(self.t_s, float)
+        # fractional keyframe index: np.interp clamps outside the track (as the slerp does)
+        u = np.interp(t, ts, np.arange(n_k, dtype=float))
+        i = u.astype(np.intp)
+        np.minimum(i, n_k - 2, out=i)
+        f = u - i
+        g = self._segments
+        c, s = cos_sin(f * g["th"].take(i))
+        kx, ky, kz = g["kx"].take(i), g["ky"].take(i), g["kz"].take(i)
+        # Rodrigues: q = v c + (k x v) s + k (k.v)(1 - c)
+        kv = kx * x + ky * y + kz * z
+        kv *= 1.0 - c
+        qx = x * c + (ky * z - kz * y) * s + kx * kv
+        qy = y * c + (kz * x - kx * z) * s + ky * kv
+        qz = z * c + (kx * y - ky * x) * s + kz * kv
+        out = []
+        for j in range(3):
+            o = g[f"r{j}0"].take(i) * qx
+            o += g[f"r{j}1"].take(i) * qy
+            o += g[f"r{j}2"].take(i) * qz
+            o += g[f"p{j}"].take(i)
+            o += f * g[f"dp{j}"].take(i)
+            out.append(o)
+        return out[0], out[1], out[2]
 
     @staticmethod
     def _axis_angle(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -399,6 +446,23 @@ class AssemblyModel:
     def lidar(self) -> LidarModel:
         return self.deployed.lidar
 
+    @cached_property
+    def columns(self) -> BeamColumns:
+        """Projection tables of both models (:class:`~nodlidar.beams.BeamColumns`): row
+        ``i`` = step ``step_min + i`` deployed, row ``n_steps + i`` the same step lifted
+        (a direct beam, mirror ``DIRECT``)."""
+        n = self.lidar.n_steps
+        return BeamColumns.concat(BeamColumns.of(self.deployed),
+                                  BeamColumns.of(self.lifted, np.full(n, DIRECT)))
+
+    @cached_property
+    def step_side(self) -> np.ndarray:
+        """(n_steps,) int8: the side (0 left, 1 right) of each step's deployed mirror,
+        -1 for a direct step."""
+        m = self.deployed.mirror_of_step
+        side = np.asarray(self.mirror_side, dtype=np.int8)
+        return np.where(m == DIRECT, -1, side[np.maximum(m, 0)]).astype(np.int8)
+
 
 @dataclass(frozen=True)
 class AssemblyStats:
@@ -424,6 +488,7 @@ def mirror_state(angle_rad: np.ndarray, profile: MirrorLiftProfile,
 
 def _side_state(samples: Any, t: np.ndarray, profile: MirrorLiftProfile | None,
                 tol: float) -> np.ndarray:
+    """Mirror state (int8, shape of ``t``) of one side at beam times ``t`` [s]."""
     if samples is None or isinstance(samples, str):
         s = samples or "deployed"
         require(s in ("deployed", "lifted"), "mirror state", s, "'deployed', 'lifted' or samples")
@@ -432,16 +497,42 @@ def _side_state(samples: Any, t: np.ndarray, profile: MirrorLiftProfile | None,
     require(profile is not None, "lift_left/lift_right", None,
             "a MirrorLiftProfile (the model has none) when lift-servo samples are given")
     assert profile is not None  # for the type checker; require() raised otherwise
-    return mirror_state(AngleSamples.of(samples).at(t, "nan"), profile, tol)
+    smp = AngleSamples.of(samples)
+    uniform = _uniform_state(smp.angle_rad, profile, tol)
+    if uniform is None:
+        return mirror_state(smp.at(t, "nan"), profile, tol)
+    # every sample well inside one end's band: so is every interpolated angle (the bands
+    # are intervals, disjoint here); outside the samples the angle is NaN -> BETWEEN
+    inside = (t >= smp.t_s[0]) & (t <= smp.t_s[-1])
+    return np.where(inside, np.int8(uniform), np.int8(BETWEEN))
 
 
-def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """``T`` (4, 4) or (n, 4, 4) applied to points ``p`` (n, 3)."""
-    if T.ndim == 2:
-        return p @ T[:3, :3].T + T[:3, 3]
-    # column by column: much faster than a batched einsum of 3x3 products
-    return (T[:, :3, 0] * p[:, :1] + T[:, :3, 1] * p[:, 1:2] + T[:, :3, 2] * p[:, 2:]
-            + T[:, :3, 3])
+def _uniform_state(a: np.ndarray, profile: MirrorLiftProfile, tol: float) -> int | None:
+    """DEPLOYED or LIFTED if every lift angle ``a`` (k,) [rad] is that state with a margin
+    (1e-9 rad, far above the rounding of a linear interpolation) and the two end bands
+    do not overlap; else None (interpolate every beam)."""
+    margin = 1e-9
+    if a.size == 0 or abs(profile.deployed_rad - profile.lifted_rad) <= 2 * tol + margin:
+        return None
+    for state, end in ((DEPLOYED, profile.deployed_rad), (LIFTED, profile.lifted_rad)):
+        if float(np.max(np.abs(a - end))) <= tol - margin:
+            return state
+    return None
+
+
+def _affine(T: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``T`` (4, 4) or (n, 4, 4) applied to points given as columns ``x, y, z`` (n,):
+    multiply-adds on columns (``p @ R.T`` on (n, 3) starts multithreaded BLAS for nine
+    numbers per point)."""
+    out = []
+    for j in range(3):
+        o = T[..., j, 0] * x
+        o += T[..., j, 1] * y
+        o += T[..., j, 2] * z
+        o += T[..., j, 3]
+        out.append(o)
+    return out[0], out[1], out[2]
 
 
 def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
@@ -499,57 +590,56 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
         require(world_from_robot is not None, "world_from_robot", None,
                 "poses for frame 'world'")
     lidar = model.lidar
-    steps = np.asarray(scans.steps)
-    r = np.asarray(scans.ranges_m, dtype=float)
-    n_beams = r.size
-    ok = np.isfinite(r) & (r > 0)
-    n_err = int(n_beams - ok.sum())
-    idx = np.flatnonzero(ok)
-    steps, r, scan_i = steps[idx], r[idx], np.asarray(scans.scan)[idx]
-    if model.range_offset_m or model.range_scale:  # the calibrated lidar range model, inverted
-        r = (r - model.range_offset_m) / (1.0 + model.range_scale)
-    t = lidar.beam_time_s(np.asarray(scans.scan_time_s, float)[scan_i], steps)
+    # Every beam goes through time, nod and mirror state (cheap per-beam scalars); the
+    # drops are decided in one mask and applied once; only the kept points are projected.
+    steps_all = np.asarray(scans.steps)
+    r_all = np.asarray(scans.ranges_m, dtype=float)
+    n_beams = r_all.size
+    ok = np.isfinite(r_all)
+    ok &= r_all > 0
+    n_ok = int(np.count_nonzero(ok))
+    lidar.check_step(steps_all, "steps")
+    idx = steps_all.astype(np.intp) - lidar.step_min
+    scan_all = np.asarray(scans.scan)
+    t_all = lidar.beam_time_s(np.asarray(scans.scan_time_s, float).take(scan_all), steps_all)
 
     if isinstance(nod, (int, float)):
-        nod_rad = np.full(t.shape, float(nod))
+        nod_all = np.full(t_all.shape, float(nod))
     else:
-        nod_rad = AngleSamples.of(nod).at(t, nod_outside)
-    have_nod = np.isfinite(nod_rad)
-    n_no_nod = int((~have_nod).sum())
+        nod_all = AngleSamples.of(nod).at(t_all, nod_outside)
+    live = ok & np.isfinite(nod_all)
+    n_no_nod = n_ok - int(np.count_nonzero(live))
 
-    mirror = model.deployed.mirror_index(steps)
-    state = np.full(t.shape, DEPLOYED, dtype=np.int8)
-    refl = np.flatnonzero(mirror != DIRECT)
-    if refl.size:
-        tr = t[refl]
-        left = _side_state(mirror_left, tr, lift_left or model.lift_left, lift_tolerance_rad)
-        right = _side_state(mirror_right, tr, lift_right or model.lift_right, lift_tolerance_rad)
-        state[refl] = np.where(model.mirror_side[mirror[refl]] == 0, left, right)
-    moving = (state == BETWEEN) & have_nod
-    n_moving = int(moving.sum())
-    blocked = (state == DEPLOYED) & ~model.clear[steps - lidar.step_min] & have_nod
-    n_blocked = int(blocked.sum())
-    keep = have_nod & ~moving & ~blocked
-    steps, r, scan_i, t, nod_rad = steps[keep], r[keep], scan_i[keep], t[keep], nod_rad[keep]
-    mirror, state = mirror[keep], state[keep]
+    # mirror state per side, evaluated on that side's beams only
+    state = np.zeros(t_all.shape, dtype=np.int8)  # DEPLOYED
+    side = model.step_side.take(idx)
+    for k, samples, prof in ((0, mirror_left, lift_left or model.lift_left),
+                             (1, mirror_right, lift_right or model.lift_right)):
+        if samples is None or (isinstance(samples, str) and samples == "deployed"):
+            continue
+        on = np.flatnonzero(side == k)
+        state[on] = _side_state(samples, t_all[on], prof, lift_tolerance_rad)
+    moving = live & (state == BETWEEN)
+    n_moving = int(np.count_nonzero(moving))
+    blocked = live & (state == DEPLOYED)
+    blocked &= ~model.clear.take(idx)
+    n_blocked = int(np.count_nonzero(blocked))
+    keep = np.flatnonzero(live & ~moving & ~blocked)
 
-    xyz = np.empty((len(r), 3))
-    lifted = state == LIFTED
-    if lifted.any():
-        xyz[lifted] = model.lifted.points(steps[lifted], r[lifted], nod_rad[lifted])
-        d = ~lifted
-        xyz[d] = model.deployed.points(steps[d], r[d], nod_rad[d])
-        mirror = np.where(lifted, DIRECT, mirror)
-    else:
-        xyz = model.deployed.points(steps, r, nod_rad)
+    steps, r, scan_i = steps_all.take(keep), r_all.take(keep), scan_all.take(keep)
+    t, nod_rad, idx = t_all.take(keep), nod_all.take(keep), idx.take(keep)
+    if model.range_offset_m or model.range_scale:  # the calibrated lidar range model, inverted
+        r = (r - model.range_offset_m) / (1.0 + model.range_scale)
+    lifted = state.take(keep) == LIFTED
+    rows = idx + lifted * lidar.n_steps  # deployed rows first, then the lifted ones
+    cols = model.columns
+    mirror = cols.mirror.take(rows)
 
-    if frame in ("robot", "world"):
-        xyz = _apply(robot_T, xyz)
+    track: PoseTrack | None = None
+    W: np.ndarray | None = None  # per-point world_from_robot (n, 4, 4) of a callable
     if frame == "world":
-        W: np.ndarray | None
         if isinstance(world_from_robot, PoseTrack):
-            W = None
-            xyz = world_from_robot.apply(t, xyz)
+            track = world_from_robot
         elif callable(world_from_robot):
             W = np.asarray(world_from_robot(t), dtype=float)
             if W.shape not in ((4, 4), (len(t), 4, 4)):
@@ -557,14 +647,25 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
                                      f"(4, 4) or ({len(t)}, 4, 4)")
             W = check_transform(W, "world_from_robot(t)", stack=W.ndim == 3)
         else:
-            W = check_transform(world_from_robot, "world_from_robot")
-        if W is not None:
-            xyz = _apply(W, xyz)
-
-    stats = AssemblyStats(beams=n_beams, error_codes=n_err, no_nod=n_no_nod,
+            W0 = check_transform(world_from_robot, "world_from_robot")
+            robot_T = W0 @ robot_T  # one constant transform (4x4 @ 4x4: no BLAS threads)
+    xyz = np.empty((len(r), 3))
+    # in chunks: each temporary stays below glibc's mmap threshold (128 KiB) and in cache,
+    # so it is reused rather than page-faulted in afresh (whole-array temporaries cost
+    # ~2 800 page faults per 100 scans, half the time)
+    for a in range(0, len(r), CHUNK):
+        sl = slice(a, a + CHUNK)
+        x, y, z = cols.project(rows[sl], r[sl], *cos_sin(nod_rad[sl]))
+        if frame != "sensor":
+            x, y, z = _affine(robot_T, x, y, z)
+        if track is not None:
+            x, y, z = track.apply_columns(t[sl], x, y, z)
+        elif W is not None:
+            x, y, z = _affine(W if W.ndim == 2 else W[sl], x, y, z)
+        xyz[sl, 0], xyz[sl, 1], xyz[sl, 2] = x, y, z
+    stats = AssemblyStats(beams=n_beams, error_codes=n_beams - n_ok, no_nod=n_no_nod,
                           mirror_moving=n_moving, blocked=n_blocked, points=len(r))
     return PointCloud(xyz, t, steps.astype(np.int32), mirror.astype(np.int16),
                       scan_i.astype(np.int32), r, frame, model.design_name, model.design_hash,
                       model.calibration_id, model.deployed.mirror_names, asdict(stats),
                       nod_rad, lifted)
-
