@@ -85,8 +85,6 @@ from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.special import erf
 
 from ..beams import BeamModel
 from ..closed_form import eq4_8_point
@@ -522,6 +520,13 @@ def _fd_jacobian(fun, x: np.ndarray, h: np.ndarray) -> np.ndarray:
 _H_MIRROR = np.array([1e-6, 1e-6, 1e-7])
 
 
+def _erf(x: np.ndarray) -> np.ndarray:
+    """scipy.special.erf, imported when first used (see _robust_mirror)."""
+    from scipy.special import erf
+
+    return erf(x)
+
+
 def _robust_mirror(prob: _MirrorProblem, sig_r: np.ndarray, config: CalibrationConfig,
                    x0: np.ndarray, warm: bool = False
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
@@ -546,6 +551,10 @@ def _robust_mirror(prob: _MirrorProblem, sig_r: np.ndarray, config: CalibrationC
                                "reflected points come near the wall planes; need "
                                f"{int(config.min_points)} (is the wall in front of the mirror's "
                                "window, and nothing in between?)")
+    # lazy: importing scipy.optimize costs ~0.5 s, which `nodlidar design` (it validates
+    # the [calibration] table through this module) must not pay (issue 16)
+    from scipy.optimize import least_squares
+
     nfev = 0
     if not warm:
         sub = prob.subset(near)
@@ -1095,7 +1104,7 @@ def calibrate(design: Design, captures: list[WallCapture], *, model: str = "exac
             condition=cond, at_bound=at_bound, nfev=nfev, cov=cov[cols, cols].copy(),
             near_wall=near,
             expected_rms_m=float(np.sqrt(np.mean(sig_n[u] ** 2))),
-            expected_within_band=float(np.mean(erf(config.band_m / (np.sqrt(2) * sig_n[u])))))
+            expected_within_band=float(np.mean(_erf(config.band_m / (np.sqrt(2) * sig_n[u])))))
     pnames = tuple(f"{n}.{p}" for n in names for p in ("dalpha_rad", "dbeta_rad", "dd_m"))
     sel = list(range(M0, M0 + 3 * len(names)))
     intr_d: dict[str, float] = {}
