@@ -155,12 +155,10 @@ def mc_case(name: str, **extra) -> dict[str, np.ndarray]:
     design = _design(key)
     res = monte_carlo(design, tolerance_spec(table), workers=0, **kw, **extra)
     out = {}
-    for f in MC_FIELDS:
-        a = getattr(res, f, None)
-        if a is not None:
-            out[f] = a
-    for mtr in PERCENTILE_METRICS:
-        if mtr in out or not extra:
+    if res.samples_kept:
+        for f in MC_FIELDS:
+            out[f] = getattr(res, f)
+        for mtr in PERCENTILE_METRICS:
             out[f"p/{mtr}"] = res.percentiles(mtr, (1.0, 50.0, 95.0, 99.0))
     rows = res.table()
     cols = [k for k in rows[0] if k != "mirror"]
@@ -231,6 +229,55 @@ def test_monte_carlo_matches_fixture(name):
     got = mc_case(name)
     _check_mc(got, want, MC_FIELDS)
     _check_summary(got, want)
+
+
+@pytest.mark.parametrize("name", list(MC_CASES))
+def test_summary_without_samples_is_exact(name, monkeypatch):
+    """keep_samples=False: the table (the spec's percentiles of the summary metrics, the
+    edge-miss fraction) equal to the last bit to the one from every sample - the same
+    float32 values, the same interpolation - and to the fixture; no sample rows kept. A
+    small pilot (200 samples) makes the windows do the work."""
+    from nodlidar.analysis import tolerance as tol_mod
+
+    monkeypatch.setattr(tol_mod, "PILOT_SAMPLES", 200)
+    got = mc_case(name, keep_samples=False)
+    full = mc_case(name)
+    np.testing.assert_array_equal(got["table"], full["table"])
+    want = np.load(DATA / f"mc_{name}.npz")
+    _check_summary(got, want)
+
+
+def test_summary_second_pass_when_a_window_misses(monkeypatch):
+    """Windows of zero width (WINDOW_SIGMAS = 0, a 100-sample pilot) miss most percentiles:
+    the second pass over the same chunks finds them, still bit-identical to np.percentile
+    of all samples."""
+    from nodlidar.analysis import tolerance as tol_mod
+
+    calls = []
+    real = tol_mod._run_chunk
+    monkeypatch.setattr(tol_mod, "_run_chunk", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(tol_mod, "PILOT_SAMPLES", 100)
+    monkeypatch.setattr(tol_mod, "WINDOW_SIGMAS", 0.0)
+    design = _design("paper")
+    kw = {"samples": 900, "seed": 4, "chunk_size": 100, "workers": 0}
+    res = tol_mod.monte_carlo(design, keep_samples=False, **kw)
+    assert len(calls) == 18          # nine chunks, twice
+    full = tol_mod.monte_carlo(design, **kw)
+    for mtr in tol_mod.SUMMARY_METRICS:
+        np.testing.assert_array_equal(res.percentiles(mtr), full.percentiles(mtr))
+    assert res.table() == full.table()
+    assert not res.samples_kept and res.bearing_error_max.shape == (0, 4, 4)
+
+
+def test_summary_refuses_what_it_did_not_keep():
+    from nodlidar.analysis.tolerance import monte_carlo
+    from nodlidar.errors import ParameterError
+
+    res = monte_carlo(_design("paper"), samples=50, workers=0, keep_samples=False)
+    with pytest.raises(ParameterError, match="bearing_error_mean"):
+        res.percentiles("bearing_error_mean")
+    with pytest.raises(ParameterError, match="keep_samples=False"):
+        res.percentiles("height_max", [10.0])
 
 
 if __name__ == "__main__":

@@ -54,6 +54,7 @@ import math
 import os
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -768,6 +769,18 @@ class ToleranceResult:
         Largest |elevation| of the reflected beams [rad].
     edge_misses : (N, m) int32
         Beams that fall off their own mirror patch.
+    samples_kept : bool
+        False for ``monte_carlo(..., keep_samples=False)``: the six arrays above are then
+        empty (0 rows) and only the spec's percentiles of :data:`SUMMARY_METRICS` and the
+        edge-miss fraction are known (``summary``), exactly as from the samples.
+    summary : dict
+        Without samples: metric -> ``(len(q), m[, r])`` percentiles; ``"edge_miss_fraction"``
+        -> ``(m,)``.
+    runner : str
+        ``"in-process"`` or ``"dask"`` (what ran the chunks).
+    wall_s, startup_s : float
+        Wall time of the whole run, and of starting the Dask cluster within it (0 in
+        process) [s].
     """
 
     design_name: str
@@ -783,13 +796,33 @@ class ToleranceResult:
     height_max: np.ndarray
     elevation_max: np.ndarray
     edge_misses: np.ndarray
+    samples_kept: bool = True
+    summary: dict[str, np.ndarray] = field(default_factory=dict)
+    runner: str = "in-process"
+    wall_s: float = 0.0
+    startup_s: float = 0.0
 
     def percentiles(self, metric: str, q: Sequence[float] | np.ndarray | None = None) -> np.ndarray:
         """Percentiles over samples: ``(len(q), m[, r])``; ``q`` defaults to the spec's."""
         if metric not in METRICS and metric != "edge_misses":
             raise ParameterError("metric", metric, ", ".join([*METRICS, "edge_misses"]))
+        if not self.samples_kept:
+            spec_q = list(self.tolerance.percentiles)
+            if metric not in self.summary:
+                raise ParameterError("metric", metric, f"one of {', '.join(SUMMARY_METRICS)} "
+                                     "(the samples were not kept: keep_samples=False)")
+            if q is not None and [float(x) for x in np.atleast_1d(q)] != spec_q:
+                raise ParameterError("q", list(np.atleast_1d(q)), f"the spec's percentiles "
+                                     f"{spec_q} (the samples were not kept: keep_samples=False)")
+            return self.summary[metric].copy()
         q = self.tolerance.percentiles if q is None else q
         return np.percentile(np.asarray(getattr(self, metric), dtype=float), q, axis=0)
+
+    def edge_miss_fraction(self) -> np.ndarray:
+        """``(m,)`` fraction of sampled builds in which a mirror loses a beam off its patch."""
+        if not self.samples_kept:
+            return self.summary["edge_miss_fraction"].copy()
+        return np.mean(self.edge_misses > 0, axis=0)
 
     def table(self) -> list[dict[str, Any]]:
         """Rows (mirror, range) with percentiles in display units (deg, mm)."""
@@ -798,7 +831,7 @@ class ToleranceResult:
         re = self.percentiles("range_error_max") * 1e3
         he = self.percentiles("height_max") * 1e3
         el = np.degrees(self.percentiles("elevation_max"))
-        miss = np.mean(self.edge_misses > 0, axis=0)
+        miss = self.edge_miss_fraction()
         rows = []
         for i, name in enumerate(self.mirror_names):
             for j, r in enumerate(self.ranges_m):
@@ -811,6 +844,145 @@ class ToleranceResult:
                     "edge_miss_fraction": float(miss[i]),
                 })
         return rows
+
+
+#: Metrics a summary-only run (``keep_samples=False``) keeps percentiles of: the table's.
+SUMMARY_METRICS = ("bearing_error_max", "range_error_max", "height_max", "elevation_max")
+#: A summary-only run keeps the first samples that arrive whole (at most this many) to place a
+#: window around each percentile; after that only the values inside the windows are kept.
+PILOT_SAMPLES = 20_000
+#: Half-width of each window in standard errors of the pilot's estimate of the percentile
+#: (binomial, ``sqrt(q (1 - q) / pilot)``). A percentile that still falls outside its window
+#: is found exactly by a second pass over the (reproducible) chunks: only speed is at stake.
+WINDOW_SIGMAS = 6.0
+
+
+class _Summary:
+    """Exact percentiles (as ``np.percentile``, linear) of :data:`SUMMARY_METRICS` and the
+    edge-miss fraction, without keeping every sample.
+
+    Each sample's row is ``(m[, r])`` cells. Per cell and percentile q a window
+    ``[lo, hi]`` (from a pilot) keeps the values inside it and counts those below, so the
+    order statistics the percentile interpolates between are known exactly when they fall
+    in the window: memory ~ pilot + ``sum(2 * WINDOW_SIGMAS * se_q)`` of the samples.
+    """
+
+    def __init__(self, q_percent: Sequence[float], n_total: int, m: int) -> None:
+        self.q_percent = [float(x) for x in q_percent]
+        self.q = np.true_divide(self.q_percent, 100)        # as np.percentile does
+        self.n = n_total
+        self.pilot: list[dict[str, np.ndarray]] = []
+        self.n_pilot = self.n_seen = 0
+        self.edge_any = np.zeros(m, np.int64)
+        self.full: dict[str, np.ndarray] | None = None        # a run no longer than its pilot
+        self.lo: dict[str, np.ndarray] = {}                   # (nq, cells) window bounds
+        self.hi: dict[str, np.ndarray] = {}
+        self.below: dict[str, np.ndarray] = {}                # (nq, cells) counts below lo
+        self.nan: dict[str, np.ndarray] = {}                  # (cells,) a NaN was seen
+        self.kept: dict[str, list[list[tuple[np.ndarray, np.ndarray]]]] = {}
+
+    def add(self, chunk: dict[str, np.ndarray]) -> None:
+        """One chunk's rows (views of a reused buffer: what is kept is copied)."""
+        n = len(chunk["edge_misses"])
+        self.edge_any += np.count_nonzero(chunk["edge_misses"] > 0, axis=0)
+        self.n_seen += n
+        if not self.lo and self.full is None:
+            self.pilot.append({k: chunk[k].copy() for k in SUMMARY_METRICS})
+            self.n_pilot += n
+            if self.n_pilot >= min(PILOT_SAMPLES, self.n):
+                self._windows()
+            return
+        self._stream(chunk)
+
+    def _windows(self) -> None:
+        pilot = {k: np.concatenate([c[k] for c in self.pilot]) for k in SUMMARY_METRICS}
+        self.pilot = []
+        if self.n_pilot >= self.n:
+            self.full = pilot
+            return
+        half = WINDOW_SIGMAS * np.sqrt(self.q * (1 - self.q) / self.n_pilot) + 2.0 / self.n_pilot
+        q_lo, q_hi = self.q - half, self.q + half
+        for k, v in pilot.items():
+            flat = v.reshape(len(v), -1).astype(float)
+            with np.errstate(invalid="ignore"), _warnings_off():
+                lo = np.nanpercentile(flat, np.clip(q_lo, 0, 1) * 100, axis=0)
+                hi = np.nanpercentile(flat, np.clip(q_hi, 0, 1) * 100, axis=0)
+            lo[q_lo <= 0] = -np.inf
+            hi[q_hi >= 1] = np.inf
+            # a cell whose pilot is all NaN: any window (its percentile is NaN anyway)
+            self.lo[k] = np.nan_to_num(lo, nan=-np.inf)
+            self.hi[k] = np.nan_to_num(hi, nan=np.inf)
+            self.below[k] = np.zeros(lo.shape, np.int64)
+            self.nan[k] = np.zeros(flat.shape[1], bool)
+            self.kept[k] = [[] for _ in self.q]
+        self._stream(pilot)
+
+    def _stream(self, chunk: dict[str, np.ndarray]) -> None:
+        for k in SUMMARY_METRICS:
+            v = chunk[k].reshape(len(chunk[k]), -1)
+            self.nan[k] |= np.isnan(v).any(axis=0)
+            for j in range(len(self.q)):
+                self.below[k][j] += np.count_nonzero(v < self.lo[k][j], axis=0)
+                rows, cells = np.nonzero((v >= self.lo[k][j]) & (v <= self.hi[k][j]))
+                self.kept[k][j].append((cells.astype(np.int32), v[rows, cells]))
+
+    def finish(self, rerun: Callable[[], Iterator[dict[str, np.ndarray]]],
+               shapes: dict[str, tuple[int, ...]]) -> dict[str, np.ndarray]:
+        """Percentiles ``(nq, *cell shape)`` per metric and ``edge_miss_fraction``;
+        ``rerun()`` yields every chunk again (the second pass, if a window missed)."""
+        out: dict[str, np.ndarray] = {"edge_miss_fraction": self.edge_any / self.n}
+        if self.full is not None:
+            for k, v in self.full.items():
+                out[k] = np.percentile(np.asarray(v, dtype=float), self.q_percent, axis=0)
+            return out
+        missing: dict[str, set[int]] = {}
+        n = self.n
+        for k in SUMMARY_METRICS:
+            n_cells = self.nan[k].size
+            res = np.full((len(self.q), n_cells), np.nan)
+            for j, q in enumerate(self.q):
+                parts = self.kept[k][j]
+                cells = np.concatenate([c for c, _ in parts])
+                vals = np.concatenate([v for _, v in parts]).astype(float)
+                order = np.lexsort((vals, cells))
+                vals = vals[order]
+                count = np.bincount(cells, minlength=n_cells)
+                start = np.concatenate([[0], np.cumsum(count)[:-1]])
+                h = (n - 1) * q                      # np.percentile's virtual index
+                i0 = min(math.floor(h), n - 1)
+                i1 = min(i0 + 1, n - 1)
+                a0 = i0 - self.below[k][j]
+                a1 = i1 - self.below[k][j]
+                ok = (a0 >= 0) & (a1 < count) & ~self.nan[k]
+                a = vals[start[ok] + a0[ok]]
+                b = vals[start[ok] + a1[ok]]
+                t = h - math.floor(h)
+                diff = b - a                         # np.percentile's interpolation (_lerp)
+                res[j, ok] = b - diff * (1 - t) if t >= 0.5 else a + diff * t
+                missing.setdefault(k, set()).update(
+                    int(x) for x in np.nonzero(~ok & ~self.nan[k])[0])
+            out[k] = res
+        todo = [(k, cell) for k, cs in missing.items() for cell in sorted(cs)]
+        if todo:   # second pass: the whole column of each missed cell
+            cols: dict[tuple[str, int], list[np.ndarray]] = {kc: [] for kc in todo}
+            for chunk in rerun():
+                for k, cell in todo:
+                    cols[k, cell].append(chunk[k].reshape(len(chunk[k]), -1)[:, cell].copy())
+            for (k, cell), col in cols.items():
+                out[k][:, cell] = np.percentile(np.concatenate(col).astype(float),
+                                                self.q_percent)
+        return {k: (v if k == "edge_miss_fraction" else v.reshape((len(self.q), *shapes[k])))
+                for k, v in out.items()}
+
+
+@contextlib.contextmanager
+def _warnings_off():
+    """No RuntimeWarning from an all-NaN pilot column (its window does not matter)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
 
 
 def _chunks(samples: int, chunk_size: int) -> list[int]:
@@ -831,6 +1003,7 @@ def monte_carlo(
     client: Any = None,
     processes: bool = True,
     progress: Callable[[int, int], None] | None = None,
+    keep_samples: bool = True,
 ) -> ToleranceResult:
     """Sample mounting errors and evaluate every mirror's beams, chunk by chunk.
 
@@ -844,8 +1017,9 @@ def monte_carlo(
     workers : int, optional
         ``0``: run in this process (no Dask). ``n >= 1``: a
         ``distributed.LocalCluster(n_workers=n, processes=processes)`` started for this
-        run. Default: in process up to 20 000 samples, else a local cluster with one
-        worker per CPU.
+        run. Default (:func:`runner_for`): in process up to :data:`DASK_MIN_SAMPLES`
+        samples, else a local cluster with one worker per CPU - and in process on a
+        single CPU, where a cluster cannot pay.
     scheduler : str, optional
         Address of an existing Dask scheduler to run on instead.
     client : distributed.Client, optional
@@ -854,6 +1028,10 @@ def monte_carlo(
         Worker processes (True) or threads (False) for a local cluster.
     progress : callable, optional
         Called as ``progress(done_samples, total_samples)`` after each chunk.
+    keep_samples : bool
+        False: keep only the spec's percentiles of :data:`SUMMARY_METRICS` and the
+        edge-miss fraction (what :meth:`ToleranceResult.table` shows), exact, without a
+        row per sample (:class:`_Summary`); memory then hardly grows with ``samples``.
 
     Returns
     -------
@@ -868,34 +1046,84 @@ def monte_carlo(
     if workers is not None:
         require(isinstance(workers, int) and workers >= 0, "workers", workers, "an integer >= 0")
     prob = _problem(design, tol)
+    m, r = len(prob.mirrors), len(prob.ranges)
     sizes = _chunks(tol.samples, tol.chunk_size)
-    starts = np.concatenate([[0], np.cumsum(sizes)])
+    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     seeds = np.random.SeedSequence(tol.seed).spawn(len(sizes))
-    # preallocated: each chunk writes (or is copied) into its rows, nothing is concatenated
-    arrays = _empty(tuple(_ARRAYS), tol.samples, len(prob.mirrors), len(prob.ranges))
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    runner = runner_for(tol.samples, workers=workers, scheduler=scheduler, client=client)
+    # preallocated: each chunk writes (or is copied) into its rows, nothing is concatenated;
+    # without samples one chunk's rows are reused and folded into the summary
+    keys = tuple(_ARRAYS) if keep_samples else (*SUMMARY_METRICS, "edge_misses")
+    arrays = _empty(tuple(_ARRAYS), tol.samples if keep_samples else 0, m, r)
+    summ = None if keep_samples else _Summary(tol.percentiles, tol.samples, m)
+    buf = None if keep_samples else _empty(keys, tol.chunk_size, m, r)
+
+    def rows(i: int) -> dict[str, np.ndarray]:
+        if buf is None:
+            return {k: v[starts[i]:starts[i + 1]] for k, v in arrays.items()}
+        return {k: v[:sizes[i]] for k, v in buf.items()}
+
     done = 0
-    use_dask = client is not None or scheduler is not None or (
-        workers is not None and workers > 0) or (workers is None and tol.samples > 20000)
-    if not use_dask:
+    if runner == "in-process":
         for i, (n, s) in enumerate(zip(sizes, seeds, strict=True)):
-            _run_chunk(prob, n, s, out={k: v[starts[i]:starts[i + 1]] for k, v in arrays.items()})
+            out = _run_chunk(prob, n, s, out=rows(i))
+            if summ is not None:
+                summ.add(out)
             done += n
             if progress:
                 progress(done, tol.samples)
     else:
         got = np.zeros(len(sizes), bool)
         for i, res in _dask_chunks(prob, sizes, seeds, workers=workers, scheduler=scheduler,
-                                   client=client, processes=processes):
-            for k, v in arrays.items():
-                v[starts[i]:starts[i + 1]] = res[k]
+                                   client=client, processes=processes, keys=keys,
+                                   timings=timings):
+            if summ is not None:
+                summ.add(res)
+            else:
+                for k, v in rows(i).items():
+                    v[...] = res[k]
             got[i] = True
             done += sizes[i]
             if progress:
                 progress(done, tol.samples)
         assert got.all()  # every chunk came back (a failed one raised above)
+    summary: dict[str, np.ndarray] = {}
+    if summ is not None:
+        def rerun() -> Iterator[dict[str, np.ndarray]]:   # in process: rare, and exact
+            for i, (n, s) in enumerate(zip(sizes, seeds, strict=True)):
+                yield _run_chunk(prob, n, s, out=rows(i))
+
+        summary = summ.finish(rerun, {k: (m, r) if _ARRAYS[k][1] else (m,)
+                                      for k in SUMMARY_METRICS})
     return ToleranceResult(design_name=design.spec.name, tolerance=tol, mirror_names=prob.names,
                            ranges_m=prob.ranges, seed=tol.seed, chunk_size=tol.chunk_size,
-                           n_samples=tol.samples, **arrays)
+                           n_samples=tol.samples, **arrays, samples_kept=keep_samples,
+                           summary=summary, runner=runner,
+                           wall_s=time.perf_counter() - t_start,
+                           startup_s=timings.get("startup_s", 0.0))
+
+
+#: Default of :func:`monte_carlo` (``workers=None``): runs of more samples than this go to
+#: a local Dask cluster. Measured (benchmarks/bench_tolerance.py, docs/benchmarks.md): see
+#: :func:`runner_for`.
+DASK_MIN_SAMPLES = 20_000
+
+
+def runner_for(samples: int, *, workers: int | None = None, scheduler: str | None = None,
+               client: Any = None) -> str:
+    """What :func:`monte_carlo` runs ``samples`` on: ``"in-process"`` or ``"dask"``.
+
+    Dask when asked for (a client, a scheduler, ``workers >= 1``); with ``workers=None``
+    only above :data:`DASK_MIN_SAMPLES` and with more than one CPU (one worker process
+    on one CPU is the in-process rate plus the cluster's start-up).
+    """
+    if client is not None or scheduler is not None or (workers is not None and workers > 0):
+        return "dask"
+    if workers is None and samples > DASK_MIN_SAMPLES and (os.cpu_count() or 1) > 1:
+        return "dask"
+    return "in-process"
 
 
 #: Environment variables Dask's nanny sets in worker processes that we leave unset.
@@ -1003,15 +1231,19 @@ def check_scheduler(address: Any, timeout_s: float = SCHEDULER_TIMEOUT_S) -> Non
 _check_scheduler = check_scheduler
 
 
-def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes):
-    """Yield ``(chunk index, result)`` as chunks finish on a Dask cluster."""
-    yield from dask_map(_run_chunk, prob, list(zip(sizes, seeds, strict=True)), workers=workers,
-                        scheduler=scheduler, client=client, processes=processes)
+def _dask_chunks(prob, sizes, seeds, *, workers, scheduler, client, processes,
+                 keys=tuple(_ARRAYS), timings=None):
+    """Yield ``(chunk index, result)`` as chunks finish on a Dask cluster (each result the
+    arrays ``keys`` of :func:`_run_chunk`)."""
+    yield from dask_map(_run_chunk, prob, [(n, s, None, keys) for n, s in
+                                           zip(sizes, seeds, strict=True)], workers=workers,
+                        scheduler=scheduler, client=client, processes=processes, timings=timings)
 
 
 def dask_map(fn: Callable[..., Any], shared: Any, args: Sequence[tuple[Any, ...]], *,
              workers: int | None = None, scheduler: str | None = None, client: Any = None,
-             processes: bool = True) -> Iterator[tuple[int, Any]]:
+             processes: bool = True,
+             timings: dict[str, float] | None = None) -> Iterator[tuple[int, Any]]:
     """Yield ``(i, fn(shared, *args[i]))`` as the tasks finish on a Dask cluster.
 
     The cluster is the caller's ``client``, or an existing ``scheduler`` (its address
@@ -1019,13 +1251,15 @@ def dask_map(fn: Callable[..., Any], shared: Any, args: Sequence[tuple[Any, ...]
     ``workers`` started here; what is started here is closed here, also when the caller
     stops early or Ctrl-C arrives (quietly: the one-line reason is the exception raised).
     ``shared`` is scattered once to every worker. Used by the Monte Carlo and by
-    :mod:`nodlidar.analysis.explore`.
+    :mod:`nodlidar.analysis.explore`. ``timings``, if given, receives ``startup_s``: the
+    wall time until the cluster holds ``shared`` and the tasks are submitted [s].
     """
     from distributed import Client, as_completed
 
     own_cluster = own_client = None
     futures: dict = {}
     interrupted = False
+    t0 = time.perf_counter()
     try:
         if client is None:
             if scheduler is not None:
@@ -1041,6 +1275,8 @@ def dask_map(fn: Callable[..., Any], shared: Any, args: Sequence[tuple[Any, ...]
                 client = own_client = Client(own_cluster)
         shared_f = client.scatter(shared, broadcast=True)
         futures = {client.submit(fn, shared_f, *a, pure=False): i for i, a in enumerate(args)}
+        if timings is not None:
+            timings["startup_s"] = time.perf_counter() - t0
         for fut in as_completed(futures):
             i = futures[fut]
             yield i, fut.result()
