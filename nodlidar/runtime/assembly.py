@@ -489,14 +489,10 @@ def mirror_state(angle_rad: np.ndarray, profile: MirrorLiftProfile,
 def _side_state(samples: Any, t: np.ndarray, profile: MirrorLiftProfile | None,
                 tol: float) -> np.ndarray:
     """Mirror state (int8, shape of ``t``) of one side at beam times ``t`` [s]."""
+    const = _side_constant(samples, t[:0], profile, tol)  # validates; a string's state
     if samples is None or isinstance(samples, str):
-        s = samples or "deployed"
-        require(s in ("deployed", "lifted"), "mirror state", s, "'deployed', 'lifted' or samples")
-        return np.full(t.shape, DEPLOYED if s == "deployed" else LIFTED, dtype=np.int8)
-    # a hand-built AssemblyModel may carry no lift profile: say so rather than AttributeError
-    require(profile is not None, "lift_left/lift_right", None,
-            "a MirrorLiftProfile (the model has none) when lift-servo samples are given")
-    assert profile is not None  # for the type checker; require() raised otherwise
+        return np.full(t.shape, const, dtype=np.int8)
+    assert profile is not None  # _side_constant raised otherwise
     smp = AngleSamples.of(samples)
     uniform = _uniform_state(smp.angle_rad, profile, tol)
     if uniform is None:
@@ -505,6 +501,26 @@ def _side_state(samples: Any, t: np.ndarray, profile: MirrorLiftProfile | None,
     # are intervals, disjoint here); outside the samples the angle is NaN -> BETWEEN
     inside = (t >= smp.t_s[0]) & (t <= smp.t_s[-1])
     return np.where(inside, np.int8(uniform), np.int8(BETWEEN))
+
+
+def _side_constant(samples: Any, t: np.ndarray, profile: MirrorLiftProfile | None,
+                   tol: float) -> int | None:
+    """The state of one side if it is the same at every beam time ``t`` [s] (a string,
+    or samples all well inside one end's band and spanning every ``t``), else None."""
+    if samples is None or isinstance(samples, str):
+        st = samples or "deployed"
+        require(st in ("deployed", "lifted"), "mirror state", st,
+                "'deployed', 'lifted' or samples")
+        return DEPLOYED if st == "deployed" else LIFTED
+    # a hand-built AssemblyModel may carry no lift profile: say so rather than AttributeError
+    require(profile is not None, "lift_left/lift_right", None,
+            "a MirrorLiftProfile (the model has none) when lift-servo samples are given")
+    assert profile is not None  # for the type checker; require() raised otherwise
+    smp = AngleSamples.of(samples)
+    uniform = _uniform_state(smp.angle_rad, profile, tol)
+    if uniform is None or t.size == 0:
+        return uniform
+    return uniform if smp.t_s[0] <= t.min() and t.max() <= smp.t_s[-1] else None
 
 
 def _uniform_state(a: np.ndarray, profile: MirrorLiftProfile, tol: float) -> int | None:
@@ -524,13 +540,29 @@ def _affine(T: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``T`` (4, 4) or (n, 4, 4) applied to points given as columns ``x, y, z`` (n,):
     multiply-adds on columns (``p @ R.T`` on (n, 3) starts multithreaded BLAS for nine
-    numbers per point)."""
+    numbers per point). A constant transform's exact 0 and 1 entries are skipped (the
+    same numbers: ``0 y`` adds nothing to a finite sum, ``1 x`` is ``x``): a sensor
+    mounted square on the robot costs three additions."""
     out = []
     for j in range(3):
-        o = T[..., j, 0] * x
-        o += T[..., j, 1] * y
-        o += T[..., j, 2] * z
-        o += T[..., j, 3]
+        if T.ndim == 2:
+            o: np.ndarray | None = None
+            for e, v in zip(T[j, :3].tolist(), (x, y, z)):
+                if e == 0.0:
+                    continue
+                term = v if e == 1.0 else e * v
+                if o is None:
+                    o = term.copy() if term is v else term  # o is ours to add into
+                else:
+                    o += term
+            if o is None:
+                o = np.zeros_like(x)
+            o += T[j, 3]
+        else:
+            o = T[:, j, 0] * x
+            o += T[:, j, 1] * y
+            o += T[:, j, 2] * z
+            o += T[:, j, 3]
         out.append(o)
     return out[0], out[1], out[2]
 
@@ -615,10 +647,12 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
     side = model.step_side.take(idx)
     for k, samples, prof in ((0, mirror_left, lift_left or model.lift_left),
                              (1, mirror_right, lift_right or model.lift_right)):
-        if samples is None or (isinstance(samples, str) and samples == "deployed"):
+        const = _side_constant(samples, t_all, prof, lift_tolerance_rad)
+        if const == DEPLOYED:
             continue
         on = np.flatnonzero(side == k)
-        state[on] = _side_state(samples, t_all[on], prof, lift_tolerance_rad)
+        state[on] = const if const is not None else _side_state(samples, t_all[on], prof,
+                                                                 lift_tolerance_rad)
     moving = live & (state == BETWEEN)
     n_moving = int(np.count_nonzero(moving))
     blocked = live & (state == DEPLOYED)
