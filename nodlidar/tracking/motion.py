@@ -28,8 +28,9 @@ visits each height once per sweep, so within a sweep the 3D slices of different 
 overlap and 3D sharpness cannot tell one ground-plane motion from another (measured: Rényi in
 3D drifted to 0.3-0.6 m/s over the first sweep of the paper scenario); in the top view every
 scan's slice of an upright object overlaps the others. ``plane=False`` keeps 3D. The Rényi sum
-uses at most ``max_points`` points (evenly spaced in time order), which bounds one evaluation's
-cost as scans accumulate.
+uses at most ``max_points`` points (evenly spaced in time order), or every point with as many
+randomly drawn pairs as ``max_points`` points have (``renyi_subsample="pairs"``), which bounds
+one evaluation's cost as scans accumulate.
 
 The coarse estimate (paper Section V-B) is the least-squares line through the per-scan
 centroids projected on the ground plane against their mean times.
@@ -223,16 +224,28 @@ class RenyiCost:
     plane : bool
         Ground-plane projection (z ignored).
     max_points : int
-        At most this many points (evenly spaced in time order) enter the sum.
+        Bounds the work: with ``subsample="points"`` at most this many points (evenly spaced
+        in time order) enter the sum; with ``"pairs"`` every point does, and the pair sum is
+        estimated from ``max_points (max_points - 1) / 2`` pairs drawn at random (the same
+        number of pairs as ``max_points`` points have).
+    subsample : {"points", "pairs"}
+        How a cloud of more than ``max_points`` points is cut down. ``"pairs"``: an
+        incomplete U-statistic (Blom 1976): the sum over all ``N (N - 1) / 2`` pairs is
+        estimated, unbiased, by the drawn pairs times ``N (N - 1) / (2 m)``; ``m`` pairs over
+        ``N`` points vary less than all the pairs of ``max_points`` points (which share
+        their points), so what a denser cloud adds is kept at the same cost. The draw is
+        seeded by ``N`` (deterministic).
     """
 
     def __init__(self, points: ArrayLike, t_s: ArrayLike, t_ref_s: float, sigma_m: float,
                  center_velocity: np.ndarray | Sequence[float],
                  max_dv_m_s: float = 0.1, cutoff_sigmas: float = 5.0, plane: bool = True,
-                 max_points: int = 800) -> None:
+                 max_points: int = 800, subsample: str = "points") -> None:
+        require(subsample in ("points", "pairs"), "subsample", subsample, "points or pairs")
         p = np.asarray(points, float)
         t = np.asarray(t_s, float)
-        if len(p) > max_points:
+        sample_pairs = subsample == "pairs" and len(p) > max_points
+        if len(p) > max_points and not sample_pairs:
             order = np.argsort(t, kind="stable")
             sel = order[np.linspace(0, len(p) - 1, max_points).round().astype(int)]
             p, t = p[sel], t[sel]
@@ -242,8 +255,22 @@ class RenyiCost:
         q = compensate(p, t, center_velocity, t_ref_s)
         span = float(t.max() - t.min()) if len(t) else 0.0
         r = cutoff_sigmas * sigma_m + max_dv_m_s * span
-        pairs = cKDTree(q).query_pairs(r, output_type="ndarray")
-        i, j = pairs[:, 0], pairs[:, 1]
+        #: weight of one pair in the sum (1: every pair within the cutoff is in the list)
+        self.w = 1.0
+        if sample_pairs:
+            n = self.n
+            m = max_points * (max_points - 1) // 2
+            rng = np.random.default_rng(n)
+            i = rng.integers(0, n, m)
+            j = rng.integers(0, n - 1, m)
+            j += j >= i  # uniform over the ordered pairs i != j: each stands for one pair
+            d = q[i] - q[j]
+            near = np.einsum("ij,ij->i", d, d) <= r * r  # the cutoff, as query_pairs
+            i, j = i[near], j[near]
+            self.w = n * (n - 1) / (2.0 * m)
+        else:
+            pairs = cKDTree(q).query_pairs(r, output_type="ndarray")
+            i, j = pairs[:, 0], pairs[:, 1]
         # q_i - q_j at velocity c + dw is (q_i - q_j)|_c + dw (t_j - t_i): stored once, in
         # float32 (the sum is over exp terms in [0, 1]; float32 halves the memory traffic)
         dq = (q[i] - q[j]).astype(np.float32)
@@ -270,7 +297,7 @@ class RenyiCost:
         if not self.plane:
             dx += self.dz2
         dx *= -self.inv4s2
-        s = self.n + 2.0 * float(np.sum(np.exp(dx, out=dx), dtype=np.float64))
+        s = self.n + 2.0 * self.w * float(np.sum(np.exp(dx, out=dx), dtype=np.float64))
         return float(-np.log(s / self.n ** 2))
 
 
@@ -301,6 +328,8 @@ def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.
     hyy = float(np.sum(ey * dy * cost.dt, dtype=f64))
     hxy = float(np.sum(ex * dy * cost.dt, dtype=f64))
     h0 = float(np.sum(edt2, dtype=f64))  # sum e dt^2
+    if cost.w != 1.0:  # sampled pairs, each standing for w pairs (RenyiCost)
+        s_e, gx, gy, hxx, hyy, hxy, h0 = (cost.w * x for x in (s_e, gx, gy, hxx, hyy, hxy, h0))
     S = cost.n + 2.0 * s_e
     gS = -4.0 * c * np.array([gx, gy])
     HS = 2.0 * (4.0 * c * c * np.array([[hxx, hxy], [hxy, hyy]]) - 2.0 * c * h0 * np.eye(2))
@@ -360,7 +389,8 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
                   plane: bool = True, max_points: int = 800,
                   voxel_offsets: int = 1, voxel_grid: tuple[int, ...] = (17, 9, 9),
                   voxel_max_points: int | None = None,
-                  renyi_method: str = "nelder-mead") -> MotionEstimate:
+                  renyi_method: str = "nelder-mead",
+                  renyi_subsample: str = "points") -> MotionEstimate:
     """Eq. 13: the motion whose compensated accumulation has the least entropy.
 
     Parameters
@@ -399,6 +429,9 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         region).
     voxel_max_points : int, optional
         Voxel: at most this many points (evenly spaced in time order; None: all).
+    renyi_subsample : {"points", "pairs"}
+        Rényi: beyond ``max_points``, keep that many points, or keep every point and draw
+        as many pairs as ``max_points`` points have (:class:`RenyiCost`).
 
     Returns
     -------
@@ -421,7 +454,7 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
     cov: np.ndarray | None
     if entropy == "renyi":
         cost = RenyiCost(p, t, t_ref, sigma_m, w0, max_dv_m_s=search_m_s, plane=plane,
-                         max_points=max_points)
+                         max_points=max_points, subsample=renyi_subsample)
         nt = _newton(cost, w0, search_m_s / 4) if renyi_method == "newton" else None
         if nt is not None and np.linalg.norm(nt[0] - w0) <= search_m_s:
             w, fval, H = nt
@@ -436,7 +469,7 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         w = res.x
         if np.linalg.norm(w - w0) > search_m_s:  # left the region whose pairs were gathered
             cost = RenyiCost(p, t, t_ref, sigma_m, w, max_dv_m_s=search_m_s, plane=plane,
-                             max_points=max_points)
+                             max_points=max_points, subsample=renyi_subsample)
             res = minimize(cost, w, method="Nelder-Mead", options={"xatol": 5e-4, "fatol": 1e-6})
             w = res.x
         H = _hessian(cost, w, np.array([2e-3, 2e-3]))
