@@ -255,6 +255,9 @@ class RenyiCost:
         q = compensate(p, t, center_velocity, t_ref_s)
         span = float(t.max() - t.min()) if len(t) else 0.0
         r = cutoff_sigmas * sigma_m + max_dv_m_s * span
+        # coordinates as 1D arrays: gathering pairs from them is several times faster than
+        # gathering rows of q (same values)
+        qx, qy, qz = (np.ascontiguousarray(q[:, k]) for k in range(3))
         #: weight of one pair in the sum (1: every pair within the cutoff is in the list)
         self.w = 1.0
         if sample_pairs:
@@ -264,18 +267,19 @@ class RenyiCost:
             i = rng.integers(0, n, m)
             j = rng.integers(0, n - 1, m)
             j += j >= i  # uniform over the ordered pairs i != j: each stands for one pair
-            d = q[i] - q[j]
-            near = np.einsum("ij,ij->i", d, d) <= r * r  # the cutoff, as query_pairs
-            i, j = i[near], j[near]
+            dx, dy, dz = qx[i] - qx[j], qy[i] - qy[j], qz[i] - qz[j]
+            near = dx * dx + dy * dy + dz * dz <= r * r  # the cutoff, as query_pairs
+            i, j, dx, dy, dz = i[near], j[near], dx[near], dy[near], dz[near]
             self.w = n * (n - 1) / (2.0 * m)
         else:
             pairs = cKDTree(q).query_pairs(r, output_type="ndarray")
             i, j = pairs[:, 0], pairs[:, 1]
+            dx, dy, dz = qx[i] - qx[j], qy[i] - qy[j], qz[i] - qz[j]
         # q_i - q_j at velocity c + dw is (q_i - q_j)|_c + dw (t_j - t_i): stored once, in
         # float32 (the sum is over exp terms in [0, 1]; float32 halves the memory traffic)
-        dq = (q[i] - q[j]).astype(np.float32)
-        self.dx, self.dy = dq[:, 0].copy(), dq[:, 1].copy()
-        self.dz2 = (dq[:, 2] ** 2).astype(np.float32)
+        self.dx, self.dy = dx.astype(np.float32), dy.astype(np.float32)
+        dz32 = dz.astype(np.float32)
+        self.dz2 = (dz32 ** 2).astype(np.float32)
         self.dt = (t[j] - t[i]).astype(np.float32)
         self.n_pairs = len(i)
         self.c = np.asarray(center_velocity, float)
