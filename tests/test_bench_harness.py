@@ -82,3 +82,31 @@ def test_cli_parser_imports_no_numpy():
                        timeout=120, cwd=ROOT)
     assert p.returncode == 0, p.stderr
     assert p.stdout.strip() == "[]"
+
+
+# what `nodlidar design` must not import (issue 16): scipy.optimize alone cost ~0.5 s of a
+# ~1 s start-up; the plotting, mesh and tracking stacks belong to other commands
+DESIGN_FORBIDDEN = ("scipy", "matplotlib", "trimesh", "stonesoup", "cadquery", "open3d")
+
+
+@pytest.mark.parametrize("design", ["urg04lx-paper.toml", "urg04lx-paper-chained.toml",
+                                    "urg04lx-optimal.toml"])
+def test_cli_design_imports_no_scipy(design):
+    """``nodlidar design FILE`` (the anchor or optimal placement and the other method for
+    comparison, the trace, the table) in a fresh interpreter: neither ``sys.modules`` at
+    the end nor ``-X importtime`` (every import, even one removed again) names scipy or
+    the plotting/mesh/tracking stacks."""
+    code = ("import contextlib, io, sys\n"
+            "from nodlidar.cli import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            f"    rc = main(['design', {str(ROOT / 'design' / design)!r}])\n"
+            "print(rc, sorted(m for m in sys.modules if m.split('.')[0] in "
+            f"{DESIGN_FORBIDDEN!r}))\n")
+    p = subprocess.run([sys.executable, "-X", "importtime", "-c", code], capture_output=True,
+                       text=True, timeout=180, cwd=ROOT)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert p.stdout.strip() == "0 []"
+    imported = [line.rsplit("|", 1)[-1].strip() for line in p.stderr.splitlines()
+                if line.startswith("import time:")]
+    assert "nodlidar.solver" in imported  # the importtime listing is the real one
+    assert [m for m in imported if m.split(".")[0] in DESIGN_FORBIDDEN] == []
