@@ -10,7 +10,7 @@ The names users need are reachable from here (``nodlidar.__all__``)::
     nl.write_cloud("sweep.ply", cloud)
 
 ``import nodlidar`` stays light (standard library only: ``nodlidar --help`` starts fast and
-nothing imports numpy, CAD or plotting before it is used): every name but ``__version__``
+nothing imports numpy, CAD or plotting before it is used): every name, ``__version__`` too,
 is resolved on first access (PEP 562 module ``__getattr__``) from the module that defines
 it, which is also where its documentation lives. Each name stays importable from that
 module too (``from nodlidar.solver import solve``), as the examples do.
@@ -19,14 +19,22 @@ module too (``from nodlidar.solver import solve``), as the examples do.
 from __future__ import annotations
 
 from importlib import import_module
-from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING, Any
 
-try:
-    #: The installed distribution's version (pyproject.toml's [project] version).
-    __version__ = version("nodlidar")
-except PackageNotFoundError:  # pragma: no cover - a checkout on sys.path, never installed
-    __version__ = "0+unknown"
+
+def _dist_version() -> str:
+    """The installed distribution's version (pyproject.toml's [project] version), the
+    value of ``nodlidar.__version__``: looked up on first access, because
+    importlib.metadata (email, zipfile, csv...) costs every start-up ~40 ms (issue 16)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("nodlidar")
+    except PackageNotFoundError:  # pragma: no cover - a checkout on sys.path, never installed
+        return "0+unknown"
+
+
+__version__: str  # declared only: bound by __getattr__ on first access
 
 #: Public name -> the module it is taken from (each lists it in its own ``__all__``).
 _LAZY: dict[str, str] = {
@@ -101,6 +109,9 @@ __all__ = ["__version__", *_LAZY]
 
 def __getattr__(name: str) -> Any:
     """Import a public name's module on first use and keep the name here."""
+    if name == "__version__":
+        globals()[name] = version = _dist_version()
+        return version
     try:
         module = _LAZY[name]
     except KeyError:

@@ -16,7 +16,7 @@ import sys
 import textwrap
 from typing import NoReturn
 
-from . import __version__, commands
+from . import commands
 from .commands._output import catch_swallowed_interrupts, configure, paragraphs, plain, raise_if_interrupted
 from .errors import NodlidarError
 
@@ -85,11 +85,28 @@ def _plain_help(p: argparse.ArgumentParser) -> None:
         g.description = plain(g.description)
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: prints ``nodlidar X.Y.Z`` and exits, as argparse's own; the version is
+    looked up only when asked (importlib.metadata would cost every start-up ~40 ms)."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS,
+                 default: str = argparse.SUPPRESS,
+                 help: str = "show program's version number and exit") -> None:
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: object, option_string: str | None = None) -> NoReturn:
+        from . import __version__
+
+        parser._print_message(f"nodlidar {__version__}\n", sys.stdout)
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="nodlidar", epilog=_EPILOG,
                      description="Design workbench and runtime for a nodding 2D lidar with "
                                  "reconfigurable mirrors.")
-    parser.add_argument("--version", action="version", version=f"nodlidar {__version__}")
+    parser.add_argument("--version", action=_VersionAction)
     _add_global_flags(parser, 0)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
@@ -115,9 +132,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     configure(int(args.verbose or 0) - int(args.quiet or 0))
-    logging.getLogger("nodlidar").debug("nodlidar %s, Python %s, %s", __version__,
-                                        sys.version.split()[0],
-                                        {k: v for k, v in vars(args).items() if not callable(v)})
+    log = logging.getLogger("nodlidar")
+    if log.isEnabledFor(logging.DEBUG):  # the version lookup costs ~40 ms: only when shown
+        from . import __version__
+
+        log.debug("nodlidar %s, Python %s, %s", __version__, sys.version.split()[0],
+                  {k: v for k, v in vars(args).items() if not callable(v)})
     restore_hook = catch_swallowed_interrupts()
     try:
         code = int(args.func(args) or 0)
