@@ -287,8 +287,8 @@ def test_existing_cluster_by_address(design):
 
 
 def test_large_runs_go_to_a_local_cluster_by_default(design, monkeypatch):
-    """workers=None: in process up to 20 000 samples, a local Dask cluster (one worker per
-    CPU) beyond; a scheduler address always goes to that scheduler."""
+    """workers=None: in process up to DASK_MIN_SAMPLES samples, a local Dask cluster (one
+    worker per CPU) beyond; a scheduler address always goes to that scheduler."""
     import nodlidar.analysis.tolerance as tolmod
 
     calls = []
@@ -304,9 +304,10 @@ def test_large_runs_go_to_a_local_cluster_by_default(design, monkeypatch):
             yield i, out
 
     monkeypatch.setattr(tolmod, "_dask_chunks", fake)
-    r = monte_carlo(design, samples=20001, chunk_size=5000)
+    big = tolmod.DASK_MIN_SAMPLES + 1
+    r = monte_carlo(design, samples=big, chunk_size=20000)
     assert len(calls) == 1 and calls[0]["workers"] is None and calls[0]["scheduler"] is None
-    assert r.n_samples == 20001 and r.bearing_error_max.shape == (20001, 4, 4)
+    assert r.n_samples == big and r.bearing_error_max.shape == (big, 4, 4)
     monte_carlo(design, samples=10, scheduler="tcp://127.0.0.1:1")
     assert len(calls) == 2 and calls[1]["scheduler"] == "tcp://127.0.0.1:1"
     monte_carlo(design, samples=10)          # small: in process, no Dask

@@ -280,6 +280,31 @@ def test_summary_refuses_what_it_did_not_keep():
         res.percentiles("height_max", [10.0])
 
 
+def test_cli_keeps_no_samples_and_reports_the_runner(capsys, monkeypatch, tmp_path):
+    """``nodlidar tolerance --json``: the same percentile table as a run keeping every
+    sample (the CLI asks for keep_samples=False), plus where it ran (added fields)."""
+    import json
+
+    from nodlidar.analysis import tolerance as tol_mod
+    from nodlidar.cli import main
+
+    monkeypatch.setattr(tol_mod, "PILOT_SAMPLES", 300)    # so the windows are used
+    kept = []
+    real = tol_mod.monte_carlo
+    monkeypatch.setattr(tol_mod, "monte_carlo",
+                        lambda *a, **k: kept.append(k.get("keep_samples")) or real(*a, **k))
+    path = ROOT / "design" / DESIGNS["paper"]
+    assert main(["tolerance", str(path), "--samples", "1500", "--seed", "2", "--workers", "0",
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert kept == [False]
+    full = real(_design("paper"), samples=1500, seed=2, workers=0)
+    assert out["percentiles"] == json.loads(json.dumps(full.table()))
+    assert out["runner"] == "in-process" and out["dask_startup_s"] == 0.0
+    assert out["dask_min_samples"] == tol_mod.DASK_MIN_SAMPLES
+    assert out["wall_s"] > 0 and out["samples_per_s"] == pytest.approx(1500 / out["wall_s"])
+
+
 if __name__ == "__main__":
     DATA.mkdir(parents=True, exist_ok=True)
     for key in DESIGNS:

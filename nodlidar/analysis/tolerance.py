@@ -1106,9 +1106,13 @@ def monte_carlo(
 
 
 #: Default of :func:`monte_carlo` (``workers=None``): runs of more samples than this go to
-#: a local Dask cluster. Measured (benchmarks/bench_tolerance.py, docs/benchmarks.md): see
-#: :func:`runner_for`.
-DASK_MIN_SAMPLES = 20_000
+#: a local Dask cluster. Measured (benchmarks/bench_tolerance.py, docs/benchmarks.md,
+#: 2 CPUs): a local cluster of 2 worker processes takes ~4.4 s to start and the fused
+#: kernel runs ~12 800 samples/s per core (paper build, 4 arcs), so with both cores free
+#: Dask breaks even at ``S r0 r2 / (r2 - r0)`` ~ 115 000-130 000 samples (r2 = 1.8-2 r0)
+#: and is ~20 % faster at 200 000; on a loaded machine 2 workers were slower than this
+#: process (never breaks even). Was 20 000 with the old kernel (8x slower per sample).
+DASK_MIN_SAMPLES = 200_000
 
 
 def runner_for(samples: int, *, workers: int | None = None, scheduler: str | None = None,

@@ -53,7 +53,13 @@ def check_monte_carlo_options(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..analysis.tolerance import monte_carlo, sensitivities
+    from ..analysis.tolerance import (
+        DASK_MIN_SAMPLES,
+        monte_carlo,
+        runner_for,
+        sensitivities,
+        tolerance_spec,
+    )
     from ..errors import ParameterError
     from ..solver import solve
     from ..spec import load_design
@@ -61,10 +67,14 @@ def run(args: argparse.Namespace) -> int:
 
     check_monte_carlo_options(args)
     design = solve(load_design(args.design))
-    progress, close = tqdm_progress("Monte Carlo")
+    n_samples = args.samples if args.samples is not None else tolerance_spec(design.spec).samples
+    runner = runner_for(n_samples, workers=args.workers, scheduler=args.scheduler)
+    progress, close = tqdm_progress("Monte Carlo (in process)" if runner == "in-process"
+                                    else "Monte Carlo (Dask)")
     try:
+        # only the percentile table is printed: no row per sample is kept (memory flat)
         res = monte_carlo(design, samples=args.samples, seed=args.seed, workers=args.workers,
-                          scheduler=args.scheduler, progress=progress)
+                          scheduler=args.scheduler, progress=progress, keep_samples=False)
     except ParameterError as exc:
         if exc.field != "scheduler":
             raise
@@ -85,7 +95,11 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         json.dump({"name": design.spec.name, "n_samples": res.n_samples, "seed": res.seed,
                    "tolerance": res.tolerance.to_dict(), "percentiles": res.table(),
-                   "sensitivities": sens.table()}, sys.stdout, indent=2)
+                   "sensitivities": sens.table(),
+                   "runner": res.runner, "wall_s": res.wall_s,
+                   "samples_per_s": res.n_samples / res.wall_s if res.wall_s > 0 else None,
+                   "dask_startup_s": res.startup_s, "dask_min_samples": DASK_MIN_SAMPLES},
+                  sys.stdout, indent=2)
         print()
         return 0
     qs = res.tolerance.percentiles
@@ -107,4 +121,9 @@ def run(args: argparse.Namespace) -> int:
     for r in sens.table():
         print(f"  {r['mirror']:4} {r['parameter']:12} {r['mean']:+10.5f} "
               f"[{r['min']:+.5f}..{r['max']:+.5f}] {r['unit']}")
+    where = ("in process" if res.runner == "in-process"
+             else f"on Dask (cluster start-up {res.startup_s:.1f} s)")
+    print(f"\nMonte Carlo {where}: {res.wall_s:.2f} s, "
+          f"{res.n_samples / max(res.wall_s, 1e-9):.0f} samples/s (Dask above "
+          f"{DASK_MIN_SAMPLES} samples by default)")
     return 0
