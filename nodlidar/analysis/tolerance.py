@@ -864,7 +864,9 @@ class _Summary:
     Each sample's row is ``(m[, r])`` cells. Per cell and percentile q a window
     ``[lo, hi]`` (from a pilot) keeps the values inside it and counts those below, so the
     order statistics the percentile interpolates between are known exactly when they fall
-    in the window: memory ~ pilot + ``sum(2 * WINDOW_SIGMAS * se_q)`` of the samples.
+    in the window. Each time the samples seen grow fourfold the windows narrow to the
+    (smaller) standard error of that many samples, from the kept values themselves (the
+    values dropped below a window are counted): memory ~ pilot + ``O(sqrt(samples))``.
     """
 
     def __init__(self, q_percent: Sequence[float], n_total: int, m: int) -> None:
@@ -880,6 +882,7 @@ class _Summary:
         self.below: dict[str, np.ndarray] = {}                # (nq, cells) counts below lo
         self.nan: dict[str, np.ndarray] = {}                  # (cells,) a NaN was seen
         self.kept: dict[str, list[list[tuple[np.ndarray, np.ndarray]]]] = {}
+        self.n_windowed = 0                                   # samples the windows are from
 
     def add(self, chunk: dict[str, np.ndarray]) -> None:
         """One chunk's rows (views of a reused buffer: what is kept is copied)."""
@@ -893,6 +896,47 @@ class _Summary:
                 self._windows()
             return
         self._stream(chunk)
+        if self.n_seen >= 4 * self.n_windowed:
+            self._narrow()
+
+    def _half(self, n: int) -> np.ndarray:
+        """Half-width of the windows after ``n`` samples, in quantile (0..1)."""
+        return WINDOW_SIGMAS * np.sqrt(self.q * (1 - self.q) / n) + 2.0 / n
+
+    def _narrow(self) -> None:
+        """Narrow every window to the standard error of the samples seen so far."""
+        n = self.n_seen
+        half = self._half(n)
+        for k in SUMMARY_METRICS:
+            n_cells = self.nan[k].size
+            for j, q in enumerate(self.q):
+                cells, vals, count, start = self._sorted(k, j, n_cells)
+                lo, hi, below = self.lo[k][j], self.hi[k][j], self.below[k][j]
+                # the order statistics at ranks (q -+ half) n, where the kept values hold them
+                for rank, bound in ((math.floor((q - half[j]) * n), lo),
+                                    (math.ceil((q + half[j]) * n), hi)):
+                    if not 0 <= rank < n:
+                        continue
+                    idx = rank - below
+                    ok = (idx >= 0) & (idx < count)
+                    bound[ok] = vals[start[ok] + idx[ok]]
+                drop_low = vals < lo[cells]
+                below += np.bincount(cells[drop_low], minlength=n_cells)
+                keep = ~drop_low & (vals <= hi[cells])
+                self.kept[k][j] = [(cells[keep], vals[keep])]
+        self.n_windowed = n
+
+    def _sorted(self, k: str, j: int, n_cells: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The kept values of metric ``k``, window ``j``, sorted by cell then value: cells,
+        values, count per cell, each cell's start."""
+        parts = self.kept[k][j]
+        cells = np.concatenate([c for c, _ in parts])
+        vals = np.concatenate([v for _, v in parts])
+        order = np.lexsort((vals, cells))
+        cells, vals = cells[order], vals[order]
+        count = np.bincount(cells, minlength=n_cells)
+        return cells, vals, count, np.concatenate([[0], np.cumsum(count)[:-1]])
 
     def _windows(self) -> None:
         pilot = {k: np.concatenate([c[k] for c in self.pilot]) for k in SUMMARY_METRICS}
@@ -900,7 +944,7 @@ class _Summary:
         if self.n_pilot >= self.n:
             self.full = pilot
             return
-        half = WINDOW_SIGMAS * np.sqrt(self.q * (1 - self.q) / self.n_pilot) + 2.0 / self.n_pilot
+        half = self._half(self.n_pilot)
         q_lo, q_hi = self.q - half, self.q + half
         for k, v in pilot.items():
             flat = v.reshape(len(v), -1).astype(float)
@@ -915,6 +959,7 @@ class _Summary:
             self.below[k] = np.zeros(lo.shape, np.int64)
             self.nan[k] = np.zeros(flat.shape[1], bool)
             self.kept[k] = [[] for _ in self.q]
+        self.n_windowed = self.n_pilot
         self._stream(pilot)
 
     def _stream(self, chunk: dict[str, np.ndarray]) -> None:
@@ -941,13 +986,8 @@ class _Summary:
             n_cells = self.nan[k].size
             res = np.full((len(self.q), n_cells), np.nan)
             for j, q in enumerate(self.q):
-                parts = self.kept[k][j]
-                cells = np.concatenate([c for c, _ in parts])
-                vals = np.concatenate([v for _, v in parts]).astype(float)
-                order = np.lexsort((vals, cells))
-                vals = vals[order]
-                count = np.bincount(cells, minlength=n_cells)
-                start = np.concatenate([[0], np.cumsum(count)[:-1]])
+                _, vals, count, start = self._sorted(k, j, n_cells)
+                vals = vals.astype(float)
                 h = (n - 1) * q                      # np.percentile's virtual index
                 i0 = min(math.floor(h), n - 1)
                 i1 = min(i0 + 1, n - 1)
