@@ -226,138 +226,128 @@ def _check_slots(plans: list[_Plan], front: np.ndarray, lidar: LidarModel, k: in
 
 # ---------------------------------------------------------------------------------------
 # scalar solvers: dependency-free, so solving a design does not import scipy.optimize
-# (~0.5 s of a fresh ``nodlidar design``, issue 16). Both follow scipy's algorithms step
-# for step (the same floating-point operations in the same order), so they return the
-# numbers ``scipy.optimize.brentq`` and ``minimize_scalar(method="bounded")`` return;
-# tests/test_solver_regression.py checks that against scipy itself.
+# (~0.5 s of a fresh ``nodlidar design``, issue 16). Written here from the textbook
+# methods (regula falsi with the Illinois modification; golden section with parabolic
+# steps), not ported from scipy; tests/test_solver_regression.py checks them against
+# scipy's ``brentq`` and ``minimize_scalar(method="bounded")`` within their tolerances.
 
-_RTOL_ROOT = 4 * 2.220446049250313e-16  # brentq's smallest (and default) relative tolerance
+_RTOL_ROOT = 4 * 2.220446049250313e-16  # relative part of the root's tolerance
+_GOLDEN = (3.0 - math.sqrt(5.0)) / 2    # golden-section fraction of a bracket, ~0.382
+_SQRT_EPS = math.sqrt(2.220446049250313e-16)
 
 
 def _brent_root(f: Callable[[float], float], xa: float, xb: float, xtol: float,
-                rtol: float = _RTOL_ROOT, maxiter: int = 100) -> float:
-    """A root of ``f`` in the bracket ``[xa, xb]`` (Brent's method: inverse quadratic or
-    secant steps, bisection when they do not shrink the bracket fast enough).
+                rtol: float = _RTOL_ROOT, maxiter: int = 200) -> float:
+    """A root of ``f`` in the bracket ``[xa, xb]`` (``f`` changes sign across it).
 
-    Converged when half the bracket is below ``(xtol + rtol*|x|)/2``. The algorithm of
-    scipy's ``brentq`` (Charles Harris's C code), operation for operation.
+    Regula falsi with the Illinois modification (the end that stays put has its value
+    halved, so the bracket shrinks from both sides), and a bisection whenever a step
+    left more than half the bracket. Returns the end of the final bracket with the
+    smaller ``|f|`` once the bracket is narrower than ``xtol + rtol*|x|``.
     """
-    xpre, xcur = float(xa), float(xb)
-    xblk = fblk = spre = scur = 0.0
-    fpre, fcur = f(xpre), f(xcur)
-    if fpre == 0:
-        return xpre
-    if fcur == 0:
-        return xcur
-    if math.copysign(1.0, fpre) == math.copysign(1.0, fcur):
+    a, b = float(xa), float(xb)
+    fa, fb = f(a), f(b)
+    if fa == 0:
+        return a
+    if fb == 0:
+        return b
+    if math.copysign(1.0, fa) == math.copysign(1.0, fb):
         raise ValueError("f(xa) and f(xb) must have different signs")
+    side = 0  # which end was kept by the last step: -1 a, +1 b
     for _ in range(maxiter):
-        if fpre != 0 and fcur != 0 and math.copysign(1.0, fpre) != math.copysign(1.0, fcur):
-            xblk, fblk = xpre, fpre
-            spre = scur = xcur - xpre
-        if abs(fblk) < abs(fcur):  # keep the best estimate in xcur
-            xpre, xcur, xblk = xcur, xblk, xcur
-            fpre, fcur, fblk = fcur, fblk, fcur
-        delta = (xtol + rtol * abs(xcur)) / 2
-        sbis = (xblk - xcur) / 2
-        if fcur == 0 or abs(sbis) < delta:
-            return xcur
-        if abs(spre) > delta and abs(fcur) < abs(fpre):
-            if xpre == xblk:  # interpolate (secant)
-                stry = -fcur * (xcur - xpre) / (fcur - fpre)
-            else:  # extrapolate (inverse quadratic)
-                dpre = (fpre - fcur) / (xpre - xcur)
-                dblk = (fblk - fcur) / (xblk - xcur)
-                stry = -fcur * (fblk * dblk - fpre * dpre) / (dblk * dpre * (fblk - fpre))
-            if 2 * abs(stry) < min(abs(spre), 3 * abs(sbis) - delta):
-                spre, scur = scur, stry  # a good short step
-            else:
-                spre = scur = sbis
+        x_best = a if abs(fa) < abs(fb) else b
+        width = abs(b - a)
+        if width <= xtol + rtol * abs(x_best):
+            return x_best
+        x = (a * fb - b * fa) / (fb - fa)
+        if not (min(a, b) < x < max(a, b)):
+            x = 0.5 * (a + b)
+        fx = f(x)
+        if fx == 0:
+            return x
+        if math.copysign(1.0, fx) == math.copysign(1.0, fa):
+            a, fa = x, fx
+            if side == 1:
+                fb *= 0.5  # b kept twice running: Illinois step
+            side = 1
         else:
-            spre = scur = sbis
-        xpre, fpre = xcur, fcur
-        xcur += scur if abs(scur) > delta else (delta if sbis > 0 else -delta)
-        fcur = f(xcur)
+            b, fb = x, fx
+            if side == -1:
+                fa *= 0.5
+            side = -1
+        if abs(b - a) > 0.5 * width:  # a slow falsi step: bisect as well
+            m = 0.5 * (a + b)
+            fm = f(m)
+            if fm == 0:
+                return m
+            if math.copysign(1.0, fm) == math.copysign(1.0, fa):
+                a, fa = m, fm
+            else:
+                b, fb = m, fm
+            side = 0
     raise ValueError(f"no convergence in {maxiter} iterations")
 
 
 def _bounded_min(func: Callable[[float], float], lo: float, hi: float, xatol: float,
                  maxfun: int = 500) -> float:
-    """Minimiser of ``func`` on ``[lo, hi]`` (Brent's golden section with parabolic steps).
+    """Minimiser of ``func`` on ``[lo, hi]`` (a unimodal function: the bracket keeps the
+    minimum of the points seen).
 
-    Stops when the point is within ``2*tol - (b - a)/2`` of the bracket's middle,
-    ``tol = sqrt(2.2e-16)*|x| + xatol/3`` (so the answer is good to ~1.5e-8 relative
-    whatever ``xatol`` says), or after ``maxfun`` evaluations. The algorithm of scipy's
-    ``minimize_scalar(method="bounded")``, operation for operation.
+    Golden-section steps, replaced by the vertex of the parabola through the three best
+    points whenever that vertex lies inside the bracket and moves less than half the step
+    before last (so it converges superlinearly on smooth minima and never worse than
+    golden section). Stops when the bracket is within ``2*tol`` of the best point on both
+    sides, ``tol = sqrt(eps)*|x| + xatol/3`` (``sqrt(eps)|x|``: a smooth minimum is flat
+    to rounding within that), or after ``maxfun`` evaluations.
     """
-    sqrt_eps = math.sqrt(2.2e-16)
-    golden_mean = 0.5 * (3.0 - math.sqrt(5.0))
-    a, b = lo, hi
-    fulc = a + golden_mean * (b - a)
-    nfc = xf = fulc
-    rat = e = 0.0
-    x = xf
+    a, b = float(lo), float(hi)
+    x = a + _GOLDEN * (b - a)
     fx = func(x)
-    num = 1
-    ffulc = fnfc = fx
-    xm = 0.5 * (a + b)
-    tol1 = sqrt_eps * abs(xf) + xatol / 3.0
-    tol2 = 2.0 * tol1
-    while abs(xf - xm) > (tol2 - 0.5 * (b - a)):
-        golden = True
-        if abs(e) > tol1:  # try a parabola through the three best points
-            golden = False
-            r = (xf - nfc) * (fx - ffulc)
-            q = (xf - fulc) * (fx - fnfc)
-            p = (xf - fulc) * q - (xf - nfc) * r
-            q = 2.0 * (q - r)
-            if q > 0.0:
-                p = -p
-            q = abs(q)
-            r = e
-            e = rat
-            if abs(p) < abs(0.5 * q * r) and p > q * (a - xf) and p < q * (b - xf):
-                rat = (p + 0.0) / q
-                x = xf + rat
-                if (x - a) < tol2 or (b - x) < tol2:
-                    rat = tol1 * (_sign(xm - xf) + ((xm - xf) == 0))
-            else:
-                golden = True
-        if golden:
-            e = (a - xf) if xf >= xm else (b - xf)
-            rat = golden_mean * e
-        x = xf + (_sign(rat) + (rat == 0)) * max(abs(rat), tol1)
-        fu = func(x)
-        num += 1
-        if fu <= fx:
-            if x >= xf:
-                a = xf
-            else:
-                b = xf
-            fulc, ffulc = nfc, fnfc
-            nfc, fnfc = xf, fx
-            xf, fx = x, fu
-        else:
-            if x < xf:
+    w, fw, v, fv = x, fx, x, fx  # second and third best points
+    step = prev = 0.0             # the last step and the one before it
+    for _ in range(maxfun - 1):
+        mid = 0.5 * (a + b)
+        tol = _SQRT_EPS * abs(x) + xatol / 3.0
+        if abs(x - mid) <= 2.0 * tol - 0.5 * (b - a):
+            break
+        parabolic = False
+        if abs(prev) > tol:
+            # vertex of the parabola through (x, fx), (w, fw), (v, fv), as x + num/den
+            t1 = (x - w) * (fx - fv)
+            t2 = (x - v) * (fx - fw)
+            num = (x - v) * t2 - (x - w) * t1
+            den = 2.0 * (t2 - t1)
+            if den > 0.0:
+                num = -num
+            den = abs(den)
+            if abs(num) < abs(0.5 * den * prev) and den * (a - x) < num < den * (b - x):
+                parabolic = True
+                prev, step = step, num / den
+                if x + step - a < 2.0 * tol or b - (x + step) < 2.0 * tol:
+                    step = tol if mid >= x else -tol  # too near an end: tol toward the middle
+        if not parabolic:
+            prev = (a - x) if x >= mid else (b - x)
+            step = _GOLDEN * prev
+        if abs(step) < tol:  # never evaluate closer than tol to the best point
+            step = tol if (step > 0.0 or (step == 0.0 and mid >= x)) else -tol
+        u = x + step
+        fu = func(u)
+        if fu <= fx:  # u is the new best: the bracket shrinks to u's side of x
+            if u >= x:
                 a = x
             else:
                 b = x
-            if fu <= fnfc or nfc == xf:
-                fulc, ffulc = nfc, fnfc
-                nfc, fnfc = x, fu
-            elif fu <= ffulc or fulc == xf or fulc == nfc:
-                fulc, ffulc = x, fu
-        xm = 0.5 * (a + b)
-        tol1 = sqrt_eps * abs(xf) + xatol / 3.0
-        tol2 = 2.0 * tol1
-        if num >= maxfun:
-            break
-    return xf
-
-
-def _sign(x: float) -> float:
-    """-1.0, 0.0 or 1.0 (``np.sign`` of a float)."""
-    return float(x > 0) - float(x < 0)
+            v, fv, w, fw, x, fx = w, fw, x, fx, u, fu
+        else:         # x stays best: the bracket shrinks to x's side of u
+            if u < x:
+                a = u
+            else:
+                b = u
+            if fu <= fw or w == x:
+                v, fv, w, fw = w, fw, u, fu
+            elif fu <= fv or v == x or v == w:
+                v, fv = u, fu
+    return x
 
 
 # ---------------------------------------------------------------------------------------
