@@ -459,8 +459,13 @@ def test_overlap_noise_is_the_calibrated_covariance_times_the_window():
     cov = np.array([[4e-4, 1e-4], [1e-4, 9e-4]])
     mo = MotionEstimate(0.1, 0.0, cov, n_points=1000, n_scans=55)
     floor = np.eye(2) * 0.01 ** 2
-    o = Tracker(TrackerConfig(velocity_fusion="overlap", max_points=300, window_scans=40))
+    o = Tracker(TrackerConfig(velocity_fusion="overlap", max_points=300, window_scans=40,
+                              renyi_subsample="points"))
     assert_allclose(o._velocity_noise(mo), 40 * cov / 300 + floor, rtol=1e-12)
+    # drawn pairs: every one of the 1000 points is in the sum
+    o = Tracker(TrackerConfig(velocity_fusion="overlap", max_points=300, window_scans=40,
+                              renyi_subsample="pairs"))
+    assert_allclose(o._velocity_noise(mo), 40 * cov / 1000 + floor, rtol=1e-12)
     k = Tracker(TrackerConfig(velocity_fusion="kalman"))
     assert_allclose(k._velocity_noise(mo), cov + floor, rtol=1e-12)
     v = Tracker(TrackerConfig(velocity_fusion="overlap", entropy="voxel"))

@@ -31,8 +31,11 @@ The measurement of a track in a scan is the ground-plane centroid of its points 
 the second scan on, the velocity from the entropy refinement (:func:`refine_motion`, eqs
 11-13) over the track's last ``window_scans`` scans, warm-started from the previous one
 (search half-width ``warm_search_m_s``, and for the voxel entropy a coarser grid,
-``warm_voxel_grid``); the Rényi sum uses at most ``max_points`` points. The reported state
-(position, speed, heading, covariance of ``(x, y, vx, vy)``) is the filter's.
+``warm_voxel_grid``); the Rényi sum uses every point of the window and at most as many
+pairs as ``max_points`` points have (``renyi_subsample``). The velocity enters the filter
+with its calibrated covariance inflated by the window's overlap with the previous one, the
+birth prior forgotten at the first estimate (``velocity_fusion="overlap"``). The reported
+state (position, speed, heading, covariance of ``(x, y, vx, vy)``) is the filter's.
 """
 
 from __future__ import annotations
@@ -97,7 +100,8 @@ class TrackerConfig:
         Constant-velocity process noise: white acceleration spectral density, as a sigma
         [m/s^2 per sqrt(Hz)] (people and robots at walking pace change velocity slowly).
     velocity_fusion : {"kalman", "window", "first"}
-        How the entropy velocity enters the filter. ``"kalman"`` (default): an independent
+        How the entropy velocity enters the filter. ``"kalman"`` (the default before issue
+        13's overlap fix; kept for comparison): an independent
         measurement every scan, noise = the refinement's curvature covariance + the floor -
         it smooths the estimate's scan-to-scan jitter, but successive windows share their
         scans, so it counts each scan many times over, and the zero-velocity birth prior
@@ -105,17 +109,17 @@ class TrackerConfig:
         track's window supersedes the previous one (the prior's velocity is forgotten;
         noise = the floor): no lag, but the jitter passes through (slow movers).
         ``"first"``: ``"kalman"`` with the birth prior forgotten at the first estimate.
-        ``"overlap"``: the three causes of the lag removed at once (:meth:`Tracker._velocity_noise`):
+        ``"overlap"`` (default): the lag's causes removed at once (:meth:`Tracker._velocity_noise`):
         the birth prior forgotten at the first estimate, the Rényi curvature covariance
         calibrated (divided by the points in the sum: the cost is a mean over them), and
         inflated by the scans in the window (a window of ``n`` scans shares ``n - 1`` with
         the previous one: each estimate carries ~1/n new information, so the filter counts
         every scan once). docs/tracking.md has the measurements of each.
-    renyi_subsample : {"points", "pairs"}
+    renyi_subsample : {"pairs", "points"}
         Beyond ``max_points`` points in the window, the Rényi sum keeps ``max_points`` points
         (``"points"``) or every point with as many random pairs as ``max_points`` points
         have (``"pairs"``, :class:`~nodlidar.tracking.motion.RenyiCost`: the same work,
-        and the density mirrors add is not thrown away).
+        and the density mirrors add is not thrown away; default).
     renyi_method : {"newton", "nelder-mead"}
         Rényi minimiser (:func:`refine_motion`); Newton's method on the closed-form
         derivatives takes a few passes over the pairs instead of ~50 (same minimum within
@@ -146,9 +150,9 @@ class TrackerConfig:
     # synthetic one (measured, 3 seeds each; two levels only, (9, 9), halves the time but
     # moved one synthetic seed's heading by 5 deg)
     warm_voxel_grid: tuple[int, ...] = (9, 9, 9)
-    velocity_fusion: str = "kalman"
+    velocity_fusion: str = "overlap"
     renyi_method: str = "newton"
-    renyi_subsample: str = "points"
+    renyi_subsample: str = "pairs"
 
     def __post_init__(self) -> None:
         require(self.confirm_scans >= 2, "confirm_scans", self.confirm_scans, ">= 2")
