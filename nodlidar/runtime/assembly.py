@@ -643,29 +643,43 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
     n_no_nod = n_ok - int(np.count_nonzero(live))
 
     # mirror state per side, evaluated on that side's beams only
-    state = np.zeros(t_all.shape, dtype=np.int8)  # DEPLOYED
-    side = model.step_side.take(idx)
+    state: np.ndarray | None = None  # None: every beam DEPLOYED
+    side = None
     for k, samples, prof in ((0, mirror_left, lift_left or model.lift_left),
                              (1, mirror_right, lift_right or model.lift_right)):
         const = _side_constant(samples, t_all, prof, lift_tolerance_rad)
         if const == DEPLOYED:
             continue
+        if state is None:
+            state = np.zeros(t_all.shape, dtype=np.int8)  # DEPLOYED
+            side = model.step_side.take(idx)
         on = np.flatnonzero(side == k)
         state[on] = const if const is not None else _side_state(samples, t_all[on], prof,
                                                                  lift_tolerance_rad)
-    moving = live & (state == BETWEEN)
-    n_moving = int(np.count_nonzero(moving))
-    blocked = live & (state == DEPLOYED)
-    blocked &= ~model.clear.take(idx)
-    n_blocked = int(np.count_nonzero(blocked))
-    keep = np.flatnonzero(live & ~moving & ~blocked)
+    clear = model.clear.take(idx)
+    if state is None:  # mirrors deployed throughout: nothing moving, no per-beam state
+        n_moving = 0
+        keep_mask = live & clear
+        n_blocked = int(np.count_nonzero(live)) - int(np.count_nonzero(keep_mask))
+    else:
+        moving = live & (state == BETWEEN)
+        n_moving = int(np.count_nonzero(moving))
+        blocked = live & (state == DEPLOYED)
+        blocked &= ~clear
+        n_blocked = int(np.count_nonzero(blocked))
+        keep_mask = live & ~moving & ~blocked
+    keep = np.flatnonzero(keep_mask)
 
     steps, r, scan_i = steps_all.take(keep), r_all.take(keep), scan_all.take(keep)
     t, nod_rad, idx = t_all.take(keep), nod_all.take(keep), idx.take(keep)
     if model.range_offset_m or model.range_scale:  # the calibrated lidar range model, inverted
         r = (r - model.range_offset_m) / (1.0 + model.range_scale)
-    lifted = state.take(keep) == LIFTED
-    rows = idx + lifted * lidar.n_steps  # deployed rows first, then the lifted ones
+    if state is None:
+        lifted = np.zeros(len(keep), dtype=bool)
+        rows = idx
+    else:
+        lifted = state.take(keep) == LIFTED
+        rows = idx + lifted * lidar.n_steps  # deployed rows first, then the lifted ones
     cols = model.columns
     mirror = cols.mirror.take(rows)
 
