@@ -1146,13 +1146,14 @@ def monte_carlo(
 
 
 #: Default of :func:`monte_carlo` (``workers=None``): runs of more samples than this go to
-#: a local Dask cluster. Measured (benchmarks/bench_tolerance.py, docs/benchmarks.md,
-#: 2 CPUs): a local cluster of 2 worker processes takes ~4.4 s to start and the fused
-#: kernel runs ~12 800 samples/s per core (paper build, 4 arcs), so with both cores free
-#: Dask breaks even at ``S r0 r2 / (r2 - r0)`` ~ 115 000-130 000 samples (r2 = 1.8-2 r0)
-#: and is ~20 % faster at 200 000; on a loaded machine 2 workers were slower than this
-#: process (never breaks even). Was 20 000 with the old kernel (8x slower per sample).
-DASK_MIN_SAMPLES = 200_000
+#: a local Dask cluster. Measured (benchmarks/bench_tolerance.py, docs/benchmarks.md; 2 CPUs
+#: shared with other jobs): a local cluster of 2 worker processes starts in 1.8-4.4 s; this
+#: process runs the fused kernel at ~13 500 samples/s of CPU (paper build, 4 arcs), 5 700-
+#: 9 600 samples/s of wall time under that load, the 2 workers 4 200-13 500 samples/s.
+#: Break-even ``N = S r0 / (1 - r0 / r2)``: 17 500, 94 000 and twice never (Dask slower) in
+#: four runs; with both cores free (r2 ~ 1.8 r0, S ~ 2.3 s) ~70 000. Below 100 000 samples
+#: (~7.5 s in process) a cluster rarely pays. Was 20 000 with the old, 8x slower kernel.
+DASK_MIN_SAMPLES = 100_000
 
 
 def runner_for(samples: int, *, workers: int | None = None, scheduler: str | None = None,
