@@ -121,9 +121,10 @@ LIDAR_COLUMNS = ("yaw", "pitch", "x", "y", "z", "roll")
 
 #: Upper bounds of the [tolerance] table. A mounting error's spread beyond 0.2 rad (11 deg)
 #: or 50 mm is not a tolerance of this build: the traced beams then miss the mirrors and
-#: the tables fill with NaN. Samples and chunks are bounded by memory: a sample keeps
-#: 4 x mirrors x ranges float32 (~290 B for the paper's build, 0.6 GB at MAX_SAMPLES) and a
-#: chunk traces every beam of every mirror at once.
+#: the tables fill with NaN. Samples and chunks are bounded by memory: a kept sample is
+#: 4 x mirrors x (4 x ranges + 2) bytes (~290 B for the paper's build, 0.55 GiB at
+#: MAX_SAMPLES; ``keep_samples=False`` keeps O(sqrt(samples)) values instead) and a chunk's
+#: rows travel whole from a Dask worker (the kernel itself works in fixed-size blocks).
 MAX_SIGMA_RAD = 0.2
 MAX_SIGMA_M = 0.05
 MAX_CHUNK_SIZE = 20_000
