@@ -249,14 +249,16 @@ class BeamModel:
             (something in front of the mirror) is placed along its outgoing direction.
         """
         i = self._index(steps)
-        r = np.broadcast_to(np.asarray(ranges_m, dtype=float), np.shape(i))
+        shape = np.broadcast_shapes(np.shape(i), np.shape(ranges_m))
+        i = np.broadcast_to(i, shape).ravel()  # any shape in, (..., 3) out
+        r = np.broadcast_to(np.asarray(ranges_m, dtype=float), shape).ravel()
         c = s = None
         if nod_rad is not None:
-            c, s = cos_sin(np.broadcast_to(np.asarray(nod_rad, dtype=float), r.shape))
+            c, s = cos_sin(np.broadcast_to(np.asarray(nod_rad, dtype=float), shape).ravel())
         x, y, z = self.columns.project(i, r, c, s)
         out = np.empty((r.size, 3))
         out[:, 0], out[:, 1], out[:, 2] = x, y, z
-        return out
+        return out.reshape(shape + (3,))
 
     @cached_property
     def columns(self) -> BeamColumns:
