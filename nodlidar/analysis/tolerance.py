@@ -98,6 +98,8 @@ __all__ = [
     "monte_carlo",
     "dask_map",
     "check_scheduler",
+    "DASK_MIN_SAMPLES",
+    "runner_for",
     "SensitivityResult",
     "sensitivities",
     "PARAMETERS",
