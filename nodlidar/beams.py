@@ -77,8 +77,8 @@ class BeamColumns:
         Path length to the mirror [m] (0: direct).
     d0x, d0y, d0z : (m,) float
         Direction leaving the lidar.
-    mirror : (m,) int
-        Mirror index of the row (``DIRECT`` = -1).
+    mirror : (m,) int16
+        Mirror index of the row (``DIRECT`` = -1), the PointCloud's dtype.
     pivot : (3,) float, or (m, 3) when the rows' models have different pivots
         Nod axis point [m].
     """
@@ -110,7 +110,7 @@ class BeamColumns:
                    by=c(d1[:, 1]), bz=c(d1[:, 2]), t_mirror=c(model.t_mirror, dtype=float),
                    d0x=c(d0[:, 0]), d0y=c(d0[:, 1]), d0z=c(d0[:, 2]),
                    mirror=np.asarray(model.mirror_of_step if mirror is None else mirror,
-                                     dtype=int),
+                                     dtype=np.int16),
                    pivot=np.asarray(model.pivot, dtype=float))
 
     @classmethod

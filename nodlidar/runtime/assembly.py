@@ -215,8 +215,15 @@ class AngleSamples:
         return cls(t[keep], a[keep])
 
     def at(self, t: ArrayLike, outside: Outside = "nan") -> np.ndarray:
-        """Linearly interpolated angle [rad] at times ``t`` [s]; NaN outside the samples."""
-        return interpolate_angle(self.t_s, self.angle_rad, t, outside=outside)
+        """Linearly interpolated angle [rad] at times ``t`` [s]; NaN outside the samples
+        (or the end sample's angle, or extrapolated: ``outside``, as
+        :func:`~nodlidar.runtime.servo_angles.interpolate_angle`)."""
+        ts, a = self.t_s, self.angle_rad
+        if (outside == "nan" and ts.ndim == 1 and ts.shape == a.shape and ts.size >= 1
+                and bool(np.all(ts[1:] > ts[:-1]))):
+            # the same numbers in one pass: np.interp gives NaN outside [t_0, t_-1] itself
+            return np.interp(np.asarray(t, dtype=float), ts, a, left=np.nan, right=np.nan)
+        return interpolate_angle(ts, a, t, outside=outside)
 
 
 @dataclass(frozen=True, eq=False, init=False)
@@ -489,7 +496,7 @@ def mirror_state(angle_rad: np.ndarray, profile: MirrorLiftProfile,
 def _side_state(samples: Any, t: np.ndarray, profile: MirrorLiftProfile | None,
                 tol: float) -> np.ndarray:
     """Mirror state (int8, shape of ``t``) of one side at beam times ``t`` [s]."""
-    const = _side_constant(samples, t[:0], profile, tol)  # validates; a string's state
+    const = _side_constant(samples, (np.inf, -np.inf), profile, tol)  # validates
     if samples is None or isinstance(samples, str):
         return np.full(t.shape, const, dtype=np.int8)
     assert profile is not None  # _side_constant raised otherwise
@@ -503,10 +510,11 @@ def _side_state(samples: Any, t: np.ndarray, profile: MirrorLiftProfile | None,
     return np.where(inside, np.int8(uniform), np.int8(BETWEEN))
 
 
-def _side_constant(samples: Any, t: np.ndarray, profile: MirrorLiftProfile | None,
-                   tol: float) -> int | None:
-    """The state of one side if it is the same at every beam time ``t`` [s] (a string,
-    or samples all well inside one end's band and spanning every ``t``), else None."""
+def _side_constant(samples: Any, t_range: tuple[float, float],
+                   profile: MirrorLiftProfile | None, tol: float) -> int | None:
+    """The state of one side if it is the same at every beam time in ``t_range`` (first,
+    last) [s] (a string, or samples all well inside one end's band and spanning the
+    range), else None."""
     if samples is None or isinstance(samples, str):
         st = samples or "deployed"
         require(st in ("deployed", "lifted"), "mirror state", st,
@@ -518,9 +526,9 @@ def _side_constant(samples: Any, t: np.ndarray, profile: MirrorLiftProfile | Non
     assert profile is not None  # for the type checker; require() raised otherwise
     smp = AngleSamples.of(samples)
     uniform = _uniform_state(smp.angle_rad, profile, tol)
-    if uniform is None or t.size == 0:
+    if uniform is None or t_range[0] > t_range[1]:  # (an empty range: no beams)
         return uniform
-    return uniform if smp.t_s[0] <= t.min() and t.max() <= smp.t_s[-1] else None
+    return uniform if smp.t_s[0] <= t_range[0] and t_range[1] <= smp.t_s[-1] else None
 
 
 def _uniform_state(a: np.ndarray, profile: MirrorLiftProfile, tol: float) -> int | None:
@@ -645,9 +653,10 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
     # mirror state per side, evaluated on that side's beams only
     state: np.ndarray | None = None  # None: every beam DEPLOYED
     side = None
+    t_range = (float(t_all.min()), float(t_all.max())) if t_all.size else (np.inf, -np.inf)
     for k, samples, prof in ((0, mirror_left, lift_left or model.lift_left),
                              (1, mirror_right, lift_right or model.lift_right)):
-        const = _side_constant(samples, t_all, prof, lift_tolerance_rad)
+        const = _side_constant(samples, t_range, prof, lift_tolerance_rad)
         if const == DEPLOYED:
             continue
         if state is None:
@@ -713,7 +722,8 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
         xyz[sl, 0], xyz[sl, 1], xyz[sl, 2] = x, y, z
     stats = AssemblyStats(beams=n_beams, error_codes=n_beams - n_ok, no_nod=n_no_nod,
                           mirror_moving=n_moving, blocked=n_blocked, points=len(r))
-    return PointCloud(xyz, t, steps.astype(np.int32), mirror.astype(np.int16),
-                      scan_i.astype(np.int32), r, frame, model.design_name, model.design_hash,
+    return PointCloud(xyz, t, steps.astype(np.int32, copy=False),
+                      mirror.astype(np.int16, copy=False), scan_i.astype(np.int32, copy=False),
+                      r, frame, model.design_name, model.design_hash,
                       model.calibration_id, model.deployed.mirror_names, asdict(stats),
                       nod_rad, lifted)
