@@ -35,6 +35,7 @@ __all__ = [
     "reflect",
     "matrix_from_axis_angle",
     "rotate_about_axis",
+    "rotate_columns",
     "rotate_about_line",
     "pitch_about_pivot",
     "directions_from_bearings",
@@ -180,13 +181,29 @@ def rotate_about_axis(v: np.ndarray, axis: np.ndarray, angle: np.ndarray | float
     v = np.asarray(v, dtype=float)
     k = np.asarray(axis, dtype=float)
     a = np.asarray(angle, dtype=float)
-    c, s = np.cos(a)[..., None], np.sin(a)[..., None]
-    # k x v by components: the same numbers as np.cross, without its axis juggling
-    k0, k1, k2 = k[..., 0], k[..., 1], k[..., 2]
-    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
-    kxv = np.stack([k1 * v2 - k2 * v1, k2 * v0 - k0 * v2, k0 * v1 - k1 * v0], -1)
-    kv = (k0 * v0 + k1 * v1 + k2 * v2)[..., None]
-    return v * c + kxv * s + kv * k * (1.0 - c)
+    q = rotate_columns(v[..., 0], v[..., 1], v[..., 2], k[..., 0], k[..., 1], k[..., 2],
+                       np.cos(a), np.sin(a))
+    return np.stack(np.broadcast_arrays(*q), -1)
+
+
+def rotate_columns(x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                   kx: np.ndarray | float, ky: np.ndarray | float, kz: np.ndarray | float,
+                   c: np.ndarray | float, s: np.ndarray | float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rodrigues' rotation on columns: vectors ``(x, y, z)`` turned about unit axes
+    ``(kx, ky, kz)`` by the angles whose cosine and sine are ``c, s``.
+
+    ``q = v c + (k x v) s + k (k.v)(1 - c)``, every argument a scalar or an array of one
+    broadcast shape (n,) or (...): the form hot paths use (no (n, 3) stacks, the cosine
+    and sine computed once by the caller). :func:`rotate_about_axis` is this on rows.
+    Returns ``(qx, qy, qz)``.
+    """
+    kv = kx * x + ky * y + kz * z
+    kv = kv * (1.0 - c)
+    qx = x * c + (ky * z - kz * y) * s + kx * kv
+    qy = y * c + (kz * x - kx * z) * s + ky * kv
+    qz = z * c + (kx * y - ky * x) * s + kz * kv
+    return qx, qy, qz
 
 
 def rotate_about_line(p: np.ndarray, point: np.ndarray, axis: np.ndarray,

@@ -35,7 +35,7 @@ from ..beams import DIRECT, BeamColumns, BeamModel, cos_sin  # noqa: F401  (Beam
 from ..dynamixel import RAD_PER_TICK
 from ..errors import ParameterError, require
 from ..frames import check_transform, refuse_renamed
-from ..geometry import CLEAR, TOL, rotate_about_axis
+from ..geometry import CLEAR, TOL, rotate_about_axis, rotate_columns
 from .servo_angles import MirrorLiftProfile, interpolate_angle, lift_profiles
 
 if TYPE_CHECKING:
@@ -324,10 +324,10 @@ class PoseTrack:
         [s] -> world-frame columns.
 
         Per point: its keyframe pair ``i`` and fraction ``f`` (one ``np.interp`` of the
-        keyframe index), the slerp ``R_i exp(f th_i [k_i])`` as Rodrigues' formula on the
-        vector (the keyframe pair's axis, angle ``f th_i``), then ``R_i`` entry by entry
-        and the linearly interpolated translation: scalar gathers and multiply-adds, no
-        3x3 BLAS products, no (n, 3) gathers.
+        keyframe index), the slerp ``R_i exp(f th_i [k_i])``: the vector turned about the
+        keyframe pair's axis by ``f th_i`` (:func:`~nodlidar.geometry.rotate_columns`),
+        then ``R_i`` entry by entry and the linearly interpolated translation: scalar
+        gathers and multiply-adds, no 3x3 BLAS products, no (n, 3) gathers.
         """
         T = np.asarray(self.world_from_robot, float)
         n_k = T.shape[0]
@@ -341,13 +341,8 @@ class PoseTrack:
         f = u - i
         g = self._segments
         c, s = cos_sin(f * g["th"].take(i))
-        kx, ky, kz = g["kx"].take(i), g["ky"].take(i), g["kz"].take(i)
-        # Rodrigues: q = v c + (k x v) s + k (k.v)(1 - c)
-        kv = kx * x + ky * y + kz * z
-        kv *= 1.0 - c
-        qx = x * c + (ky * z - kz * y) * s + kx * kv
-        qy = y * c + (kz * x - kx * z) * s + ky * kv
-        qz = z * c + (kx * y - ky * x) * s + kz * kv
+        qx, qy, qz = rotate_columns(x, y, z, g["kx"].take(i), g["ky"].take(i),
+                                    g["kz"].take(i), c, s)
         out = []
         for j in range(3):
             o = g[f"r{j}0"].take(i) * qx
