@@ -107,26 +107,32 @@ def sweep_errors(transport: str, lift: bool = False):
         # the tick is the clock modulo 32.768 s: the read time is the stamp's nearest match
         t_read = tick + np.round((t_smp - tick) / 32.768) * 32.768
         span = (t_smp >= pc.t.min() - 0.1) & (t_smp <= pc.t.max() + 0.1)
+        # the servo's own top rate, from the emulator's truth: the sweep asks 0.35 rad/s,
+        # the servo runs at whole velocity units (0.229 rev/min), 15 units = 0.3597 rad/s
+        t_fine = np.arange(t_smp[span].min(), t_smp[span].max(), 1e-4)
+        rate = float(np.abs(np.diff(sim.dxl.joint_angle("nod", t_fine)) / 1e-4).max())
+        assert 0.34 <= rate <= 0.37, rate  # the sweep's nominal 0.35 rad/s, quantised
         angle_err = np.abs(a_smp[span] - sim.dxl.joint_angle("nod", t_read[span] + 0.5e-3)).max()
-        assert angle_err <= RAD_PER_TICK / 2 + 0.35 * 0.5e-3 + 1e-9  # the angles are sound
+        # the angles are sound: position rounding + half a ms (the tick floors the clock)
+        assert angle_err <= RAD_PER_TICK / 2 + rate * 0.5e-3 + 1e-9
         stamp_err = np.abs(t_smp[span] - t_read[span]).max() + 1e-3
-        sample_err = angle_err + 0.35 * stamp_err
+        sample_err = angle_err + rate * stamp_err
         sync_err = 1e-3 + s.urg.clock_sync.rtt_s / 2  # ClockSync's stated bound
     r = np.concatenate(rng)
-    return pc, np.concatenate(errs), error_bound(pc, cap, r, sample_err, sync_err)
+    return pc, np.concatenate(errs), error_bound(pc, cap, r, sample_err, sync_err, rate)
 
 
-def error_bound(pc, cap, r, sample_err: float, sync_err: float):
+def error_bound(pc, cap, r, sample_err: float, sync_err: float, rate: float):
     """Per-point error budget [m] at range r: the nod samples' own error (measured against
     the emulator's truth; linear interpolation between samples on a straight ramp adds
-    none), the stamp error of the TM clock sync times the nod rate (0.35 rad/s), each times
-    r; the device's 1 mm range rounding (0.5 mm). Within two sample intervals of a
+    none), the stamp error of the TM clock sync times the nod rate ``rate`` [rad/s], each
+    times r; the device's 1 mm range rounding (0.5 mm). Within two sample intervals of a
     turnaround (ramp start/end), interpolation also cuts the corner of the nod profile by
     up to rate x interval / 2 (velocity reversing between two samples)."""
     t_s = cap.joints["nod"][0]
     gap = np.diff(t_s).max()
     near = np.minimum(np.abs(pc.t - cap.t_start_s), np.abs(pc.t - cap.t_end_s)) < 2 * gap
-    ang = sample_err + 0.35 * sync_err + np.where(near, 0.35 * gap / 2, 0.0)
+    ang = sample_err + rate * sync_err + np.where(near, rate * gap / 2, 0.0)
     return r * ang + 0.5e-3 + 1e-6
 
 
