@@ -683,3 +683,192 @@ def test_decode_scan_bytes_and_reply_agree_on_corruptions():
                 return scip.decode_scan(scip.parse_reply(c))
 
             assert outcome(lambda c=c: scip.decode_scan(c)) == outcome(via_reply)
+
+
+# --- regression: the decode path's outputs and errors, saved before the issue-16 rework --
+#: Outputs of decode_scan (from bytes and from a parsed reply), parse_reply's payload and
+#: the framer on the real captures and on synthetic frames, saved from the implementation
+#: before the second SCIP speed-up (issue 16). Regenerate only from a trusted
+#: implementation: ``.venv/bin/python tests/test_scip_codec.py --save-regression``.
+REGRESSION = Path(__file__).resolve().parent / "data" / "scip_decode_regression.json"
+
+
+def _synthetic_bases() -> dict[str, bytes]:
+    """Synthetic frames: 2- and 3-char encodings, MD/MS with the remaining count, clusters,
+    tags, full last lines (no short line), one value, UTM-sized scans, extreme values,
+    error statuses, a multi-echo (HD) reply, non-device line widths, framing faults."""
+    rng = np.random.default_rng(1602)
+    enc = scip.encode_scan_reply
+    out = {
+        "gd682": enc("GD0044072501", "00", 123456, rng.integers(0, 5600, 682), 3),
+        "gs682": enc("GS0044072501", "00", 16_000_000, rng.integers(0, 4096, 682), 2),
+        "md682_rem2": enc("MD0044072501002", "99", 5, rng.integers(0, 5600, 682), 3),
+        "ms682_rem0": enc("MS0044072501000", "99", 2**24 - 1, rng.integers(0, 4096, 682), 2),
+        "gd_cluster3_tag": enc("GD0044072503;a.b", "00", 77, rng.integers(0, 5600, 228), 3),
+        "gd_one_value": enc("GD0384038401", "00", 0, np.array([1234]), 3),
+        # 64 3-char values: 192 characters, three full lines and no short last line
+        "gd_full_lines": enc("GD0000006301", "00", 4095, rng.integers(0, 64**3, 64), 3),
+        # 32 2-char values: exactly one full line
+        "gs_one_full_line": enc("GS0000003101", "00", 262143, rng.integers(0, 4096, 32), 2),
+        "gd1081_utm": enc("GD0000108001", "00", 999, rng.integers(0, 60000, 1081), 3),
+        "gd_extremes": enc("GD0000000801", "00", 1,
+                           np.array([0, 1, 63, 64, 4095, 4096, 262143, 0, 262143]), 3),
+        "gs_extremes": enc("GS0000000401", "00", 1, np.array([0, 63, 64, 4095, 1]), 2),
+        "gd_laser_off": scip.encode_message("GD0044072501", "10"),
+        "md_ack": scip.encode_message("MD0044072501003", "00"),
+        "ms_0e": scip.encode_message("MS0044072501000", "0E"),
+        "hd_multi_echo": enc("HD0044072501", "00", 10, rng.integers(0, 5600, 682), 3),
+        "tm1": scip.encode_message("TM1", "00", [scip.with_checksum(scip.encode_value(5, 4))]),
+        "gd_count_short": enc("GD0044072501", "00", 3, rng.integers(0, 5600, 681), 3),
+        "gd_count_long": enc("GD0044072501", "00", 3, rng.integers(0, 5600, 683), 3),
+        "gd_bad_echo": enc("GD0044;072501", "00", 3, rng.integers(0, 5600, 682), 3),
+    }
+    v = rng.integers(0, 64**3, 682)
+    data = scip.encode_values(v, 3)
+    ts = scip.with_checksum(scip.encode_value(654321, 4))
+    for width in (7, 65):
+        lines = [ts] + [scip.with_checksum(data[k:k + width]) for k in range(0, len(data), width)]
+        out[f"gd_width{width}"] = scip.encode_message("GD0044072501", "00", lines)
+    # data not a multiple of 3 characters; a character outside '0'..'o' (sums made to match)
+    out["gd_len_not_multiple"] = scip.encode_message(
+        "GD0044072501", "00", [ts, scip.with_checksum(data[:64]), scip.with_checksum(data[64:65])])
+    for name, bad in (("p", b"p"), ("slash", b"/"), ("high", b"\xb0")):
+        d = data[:10] + bad + data[11:]
+        lines = [ts] + [scip.with_checksum(d[k:k + 64]) for k in range(0, len(d), 64)]
+        out[f"gd_char_{name}"] = scip.encode_message("GD0044072501", "00", lines)
+        t = scip.with_checksum(b"0" + bad + b"00")
+        out[f"gd_ts_char_{name}"] = scip.encode_message(
+            "GD0044072501", "00", [t] + [scip.with_checksum(data[k:k + 64])
+                                         for k in range(0, len(data), 64)])
+    for name, t in (("ts3", b"000"), ("ts5", b"00000")):
+        out[f"gd_{name}"] = scip.encode_message(
+            "GD0044072501", "00", [scip.with_checksum(t), scip.with_checksum(data[:66])])
+    return out
+
+
+def _regression_inputs() -> tuple[dict[str, bytes], list[tuple[str, str, list]]]:
+    """(bases, cases): each case is (name, base, edits), an edit ``["set", i, byte]``,
+    ``["del", i]``, ``["ins", i, byte]`` or ``["keep", n]`` (the first n bytes)."""
+    bases = {"capture_a": _capture("a"), "capture_b": _capture("b"), **_synthetic_bases()}
+    cases: list[tuple[str, str, list]] = [(k, k, []) for k in bases]
+    for k in ("capture_a", "capture_b", "gd682", "gs682", "md682_rem2", "gd_full_lines"):
+        raw = bases[k]
+        n = len(raw)
+        cases += [(f"{k}/no_final_lf", k, [["keep", n - 1]]),
+                  (f"{k}/no_lf_lf", k, [["keep", n - 2]]),
+                  (f"{k}/extra_lf", k, [["ins", n, 0x0A]])]
+        # every line after the echo: its sum wrong (+1), its first content byte wrong (+1),
+        # its first content byte +64 and its second -64 (the sum holds, the characters
+        # leave '0'..'o'), its LF lost, its sum byte deleted, a +1/-1 pair (sum holds)
+        lfs = [i for i, c in enumerate(raw[:-2]) if c == 0x0A]
+        for li, (a, b) in enumerate(zip(lfs[:-1], lfs[1:])):
+            first, s = a + 1, b - 1  # the line is raw[first:b], its sum at s
+            cases.append((f"{k}/line{li}/sum+1", k, [["set", s, (raw[s] + 1) % 256]]))
+            cases.append((f"{k}/line{li}/lf_lost", k, [["del", b]]))
+            cases.append((f"{k}/line{li}/sum_deleted", k, [["del", s]]))
+            if s > first:
+                cases.append((f"{k}/line{li}/content+1", k,
+                               [["set", first, (raw[first] + 1) % 256]]))
+            if s > first + 1:
+                cases.append((f"{k}/line{li}/content+64-64", k,
+                              [["set", first, (raw[first] + 64) % 256],
+                               ["set", first + 1, (raw[first + 1] - 64) % 256]]))
+            # +1 and -1 on a pair of characters that stay in '0'..'o': the sum holds
+            pair = [j for j in range(first, s - 1) if raw[j] < 0x6F and raw[j + 1] > 0x30]
+            if pair:
+                j = pair[0]
+                cases.append((f"{k}/line{li}/content+1-1", k,
+                              [["set", j, raw[j] + 1], ["set", j + 1, raw[j + 1] - 1]]))
+    return bases, cases
+
+
+def _apply_edits(raw: bytes, edits: list) -> bytes:
+    b = bytearray(raw)
+    for e in edits:
+        if e[0] == "set":
+            b[e[1]] = e[2]
+        elif e[0] == "del":
+            del b[e[1]]
+        elif e[0] == "ins":
+            b.insert(e[1], e[2])
+        else:
+            del b[e[1]:]
+    return bytes(b)
+
+
+def _decode_outcomes(raw: bytes, full: bool) -> dict[str, object]:
+    """What the decode path does with ``raw``: decode_scan from bytes, parse_reply (and its
+    payload), decode_scan of the parsed reply, and a framer fed the message. Ranges are
+    kept as a list if ``full``, else as the sha256 of their int32 bytes (as exact)."""
+    import hashlib
+
+    def h(b: bytes) -> str:  # 64 bits of sha256: a changed byte string is told apart
+        return hashlib.sha256(b).hexdigest()[:16]
+
+    def frame(fn):
+        try:
+            f = fn()
+        except Exception as e:  # any exception type is part of the record
+            return ["err", type(e).__name__, str(e)]
+        r = f.ranges_mm
+        return ["ok", f.echo, f.status, f.timestamp_ms, str(r.dtype), bool(r.flags.writeable),
+                r.tolist() if full else h(r.tobytes())]
+
+    out: dict[str, object] = {"bytes": frame(lambda: scip.decode_scan(raw))}
+    try:
+        r = scip.parse_reply(raw)
+    except Exception as e:
+        out["reply"] = ["err", type(e).__name__, str(e)]
+    else:
+        pay = None if r.payload is None else h(r.payload.tobytes())
+        out["reply"] = ["ok", r.echo, r.status, r.scip1, len(r.body), pay]
+        via = frame(lambda: scip.decode_scan(r))
+        out["via_reply"] = "=bytes" if via == out["bytes"] else via  # (smaller fixture)
+    fr = scip.ScipFramer()
+    got = fr.feed(raw) + fr.feed(b"\n\n")
+    out["framer"] = [[h(m) for m in got], fr.rejected,
+                     fr.discarded_bytes]
+    return out
+
+
+def _regression_record() -> dict[str, object]:
+    import base64
+
+    bases, cases = _regression_inputs()
+    return {
+        "bases": {k: base64.b64encode(v).decode("ascii") for k, v in bases.items()},
+        "cases": [{"name": n, "base": b, "edits": e,
+                   "outcome": _decode_outcomes(_apply_edits(bases[b], e), not e)}
+                  for n, b, e in cases],
+    }
+
+
+def test_decode_regression_fixture():
+    """Every case of the saved fixture (inputs stored in it, not regenerated) gives the
+    outputs and errors - type and message - saved before the issue-16 rework, exactly:
+    ranges are integers, nothing to tolerate."""
+    import base64
+    import json
+
+    saved = json.loads(REGRESSION.read_text())
+    bases = {k: base64.b64decode(v) for k, v in saved["bases"].items()}
+    # the captures in the fixture are the files in tests/data, byte for byte
+    assert bases["capture_a"] == _capture("a") and bases["capture_b"] == _capture("b")
+    assert len(saved["cases"]) > 300
+    n_ok = n_err = 0
+    for case in saved["cases"]:
+        raw = _apply_edits(bases[case["base"]], case["edits"])
+        got = json.loads(json.dumps(_decode_outcomes(raw, not case["edits"])))  # tuples -> lists, as saved
+        assert got == case["outcome"], case["name"]
+        n_ok += got["bytes"][0] == "ok"
+        n_err += got["bytes"][0] == "err"
+    assert n_ok >= 20 and n_err >= 200  # both outcomes are exercised
+
+
+if __name__ == "__main__":
+    import json
+    import sys
+
+    if sys.argv[1:] == ["--save-regression"]:
+        REGRESSION.write_text(json.dumps(_regression_record(), separators=(",", ":")) + "\n")
+        print(f"wrote {REGRESSION}")
