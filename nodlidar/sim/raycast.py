@@ -43,7 +43,6 @@ from ..geometry import (
     MirrorPatch,
     Perturbation,
     directions_from_bearings,
-    pitch_about_pivot,
     ray_cylinder_hit,
     reflect,
     rotate_about_axis,
@@ -51,7 +50,8 @@ from ..geometry import (
 )
 from ..hinge import LiftAxis, lift_fraction, lifted_patch, side_lift_axes
 from ..lidar import LidarModel
-from .scene import HIT_NONE, HIT_STATIC, Scene, builtin_scene
+from . import _kernel as K
+from .scene import HIT_NONE, HIT_STATIC, BackAndForth, ConstantVelocity, Fixed, Scene, builtin_scene
 
 if TYPE_CHECKING:
     from ..design import Design
@@ -68,16 +68,17 @@ def measure(true_ranges_m: np.ndarray, model: LidarModel, rng: np.random.Generat
     Adds ``N(0, range_sigma_m(r))`` noise (if ``noise``), rounds to the millimetre; no
     return (NaN or inf) stays NaN. Range limits are not applied here: the SCIP emulator
     turns values outside DMIN..DMAX into the device's error codes, and
-    :meth:`ScanTruth.measured_m` gives NaN for them.
+    :meth:`ScanTruth.measured_m` gives NaN for them. The noise is one
+    ``rng.standard_normal(shape)`` draw (every element, returns or not).
     """
     r = np.asarray(true_ranges_m, dtype=float)
-    r = np.where(np.isfinite(r), r, np.nan)
-    if noise:
-        if rng is None:
-            raise ParameterError("rng", rng, "a numpy Generator when noise=True")
-        sig = model.range_sigma_m(np.nan_to_num(r))
-        r = r + rng.standard_normal(r.shape) * sig
-    return np.round(r * 1000.0) / 1000.0
+    if noise and rng is None:
+        raise ParameterError("rng", rng, "a numpy Generator when noise=True")
+    z = rng.standard_normal(r.shape) if noise and rng is not None else np.zeros(0)
+    near, knee, rel = model.range_noise
+    out = K.measure(np.ascontiguousarray(r.ravel()), np.ascontiguousarray(z.ravel()), noise,
+                    float(near), float(knee), float(rel))
+    return out.reshape(r.shape)[()]
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,17 +130,24 @@ class ScanTruth:
         return np.where(ok, r, np.nan)
 
 
-def _meets_sphere(origins: np.ndarray, dirs: np.ndarray, centre: np.ndarray,
-                  radius2: float) -> np.ndarray:
-    """(n,) bool: the ray (half-line) from ``origins`` along ``dirs`` (n, 3) meets the ball
-    of squared radius ``radius2`` [m^2] about ``centre`` (3,). Conservative and in float64."""
-    w = centre - origins
-    wd = np.einsum("ij,ij->i", w, dirs)
-    dd = np.einsum("ij,ij->i", dirs, dirs)
-    ww = np.einsum("ij,ij->i", w, w)
-    # squared distance of the centre from the ray's line is ww - wd^2/dd; a ball behind the
-    # origin (wd < 0) is met only if the origin is inside it
-    return (ww * dd - wd * wd <= radius2 * dd) & ((wd >= 0) | (ww <= radius2))
+def _trajectory_kernel_args(traj) -> tuple[int, np.ndarray, np.ndarray, float, float] | None:
+    """``(kind, p0, p1, leg_s, t0)`` of a scene trajectory for ``_kernel.mover_positions``
+    (None: another kind, whose ``position(t)`` is called)."""
+    z3 = np.zeros(3)
+    if isinstance(traj, Fixed):
+        return K.TRAJ_FIXED, np.asarray(traj.position_m, dtype=float), z3, 1.0, 0.0
+    if isinstance(traj, ConstantVelocity):
+        return (K.TRAJ_CONSTANT_VELOCITY, np.asarray(traj.start_m, dtype=float),
+                np.asarray(traj.velocity_m_s, dtype=float), 1.0, float(traj.t0_s))
+    if isinstance(traj, BackAndForth):
+        return (K.TRAJ_BACK_AND_FORTH, np.asarray(traj.start_m, dtype=float),
+                np.asarray(traj.end_m, dtype=float), float(traj.leg_s), float(traj.t0_s))
+    return None
+
+
+def _rows(a: np.ndarray) -> np.ndarray:
+    """``a`` as a C-ordered float64 ``(n, 3)`` array (what the kernels take)."""
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 class _MeshCaster:
@@ -150,63 +158,54 @@ class _MeshCaster:
     embree's float32 error, so no ray that embree would report is dropped): a mover or a
     mirror is seen by few of the rays. Each ray is
     cast on its own by embree, so casting a subset gives the same triangle per ray.
+    The rays are prepared for embree exactly as trimesh's ``intersects_first`` prepares
+    them (``_kernel.embree_rays``), and the embree scene is called directly (skipping
+    trimesh's per-call mesh-hash lookup).
     """
 
     _MARGIN_M = 1e-3
 
     def __init__(self, mesh, *, cull: bool = False):
         from trimesh.ray.ray_pyembree import RayMeshIntersector
-        from trimesh.util import unitize
 
         self.mesh = mesh
         self.intersector = RayMeshIntersector(mesh)
-        # the embree scene itself: RayMeshIntersector.intersects_first looks it up through
-        # a cache keyed on the mesh's hash on every call; the rays are prepared below
-        # exactly as intersects_first prepares them (float32, unit directions)
-        self._scene = self.intersector._scene
-        self._unitize = unitize
+        wrap = self.intersector._scene  # trimesh's _EmbreeWrap: shift, scale, embree scene
+        self._run = wrap.scene.run
+        self._origin = np.asarray(wrap.origin, dtype=np.float64)
+        self._scale = float(wrap.scale)
         tri = np.asarray(mesh.triangles, dtype=float)
         self.v0 = tri[:, 0]
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
+        self.normals = np.ascontiguousarray(n / np.linalg.norm(n, axis=1, keepdims=True))
         self.cull = bool(cull)
         self._offset = np.einsum("ij,ij->i", self.v0, self.normals)  # plane: x . n = offset
         lo, hi = np.asarray(mesh.bounds, dtype=float)
         self._centre = (lo + hi) / 2
         self._radius2 = (float(np.linalg.norm(hi - lo)) / 2 + self._MARGIN_M) ** 2
 
-    def may_hit(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """(n,) bool: the ray (half-line) meets the mesh's bounding sphere (with margin)."""
-        return _meets_sphere(origins, dirs, self._centre, self._radius2)
-
-    def _first(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """Triangle index of each ray's first hit (-1 none): ``intersects_first``."""
-        o = np.array(origins, dtype=np.float32)
-        d = self._unitize(np.array(dirs, dtype=np.float32))
-        return np.asarray(self._scene.run(o, d), dtype=np.int64)
+    def first(self, o32: np.ndarray, d32: np.ndarray) -> np.ndarray:
+        """Triangle index (m,) of each prepared embree ray's first hit (-1 none)."""
+        if not len(o32):
+            return np.zeros(0, dtype=np.int64)
+        return np.asarray(self._run(o32, d32), dtype=np.int64)
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest hit of each ray: ``(distance (n,) [m], inf if none; triangle (n,), -1)``."""
-        n_rays = len(origins)
+        """Nearest hit of each ray ``(n, 3)``: ``(distance (n,) [m], inf if none; triangle
+        (n,), -1)``."""
+        o, d = _rows(origins), _rows(dirs)
         if self.cull:
-            idx = np.flatnonzero(self.may_hit(origins, dirs))
-            tri = np.full(n_rays, -1, dtype=np.int64)
+            idx, o32, d32 = K.cull_embree_rays(o, d, self._centre, self._radius2,
+                                               self._origin, self._scale)
+            tri = np.full(len(o), -1, dtype=np.int64)
+            t = np.full(len(o), np.inf)
             if len(idx):
-                tri[idx] = self._first(origins[idx], dirs[idx])
-        else:
-            tri = self._first(origins, dirs)
-        t = np.full(n_rays, np.inf)
-        hit = np.flatnonzero(tri >= 0)
-        if len(hit):
-            th = tri[hit]
-            n = self.normals[th]
-            # (every ray hits the enclosing room: no gather of the rays then)
-            o, d = (origins, dirs) if len(hit) == n_rays else (origins[hit], dirs[hit])
-            num = self._offset[th] - np.einsum("ij,ij->i", o, n)
-            den = np.einsum("ij,ij->i", d, n)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t[hit] = np.where(np.abs(den) > 1e-12, num / den, np.inf)
-        return t, tri
+                tri[idx] = ti = self.first(o32, d32)
+                t[idx] = K.plane_distances(o[idx], d[idx], ti, self.normals, self._offset)
+            return t, tri
+        o32, d32 = K.embree_rays(o, d, self._origin, self._scale)
+        tri = self.first(o32, d32)
+        return K.plane_distances(o, d, tri, self.normals, self._offset), tri
 
 
 class SceneSimulator:
@@ -257,6 +256,11 @@ class SceneSimulator:
             self._face_part = np.zeros(0, dtype=int)
             self._static = None
         self._movers = [_MeshCaster(m.mesh(), cull=True) for m in self.scene.movers]
+        self._mover_args = [_trajectory_kernel_args(m.trajectory) for m in self.scene.movers]
+        pose = self.scene.sensor
+        # the sensor pose as the world_rays kernel takes it (scene.SensorPose.to_world)
+        self._pose_args = (np.ascontiguousarray(pose.rotation), np.asarray(pose.position_m, dtype=float),
+                           np.asarray(pose.velocity_m_s, dtype=float), float(pose.t0_s))
         # each mirror's glass as a mesh of its own (two triangles): beams are cast at it in
         # its unturned frame, one embree call per mirror and bounce
         # (culled to the rays that reach the mirror's bounding box: its beam window)
@@ -325,7 +329,7 @@ class SceneSimulator:
                 # axis (which holds the patch at every lift angle, and which turning a ray
                 # about the axis does not change) are turned and cast
                 centre, r2 = self._windows[i]
-                idx = np.flatnonzero(alive & (last != i) & _meets_sphere(o, d, centre, r2))
+                idx = K.sphere_candidates(o, d, alive & (last != i), centre, r2)
                 if not len(idx):
                     continue
                 oi, di = o[idx], d[idx]
@@ -412,37 +416,43 @@ class SceneSimulator:
 
     def to_world(self, p_head: np.ndarray, d_head: np.ndarray, nod_rad: np.ndarray,
                  t_s: np.ndarray, _rel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Head-frame points/directions at per-row nod [rad] and time [s] -> world frame."""
-        # the nod: R_y(nod) per row about the pivot (conventions.md); ``_rel`` = the cached
-        # p_head - pivot
-        if _rel is None:
-            p_sensor = pitch_about_pivot(p_head, nod_rad, self.pivot)
-        else:
-            p_sensor = pitch_about_pivot(_rel, nod_rad) + self.pivot
-        d_sensor = pitch_about_pivot(d_head, nod_rad)
-        pose = self.scene.sensor
-        return pose.to_world(p_sensor, t_s), d_sensor @ pose.rotation.T
+        """Head-frame points/directions ``(n, 3)`` at per-row nod [rad] and time [s] -> world
+        frame ``(n, 3), (n, 3)``: the nod ``R_y(nod)`` about the pivot (conventions.md,
+        geometry.pitch_about_pivot), then the sensor pose (scene.SensorPose.to_world), in
+        one kernel (``_kernel.world_rays``). ``_rel``: the cached ``p_head - pivot``."""
+        rel = _rows(p_head - self.pivot if _rel is None else _rel)
+        n = len(rel)
+        nod = np.ascontiguousarray(np.broadcast_to(np.asarray(nod_rad, dtype=float), (n,)))
+        t = np.ascontiguousarray(np.broadcast_to(np.asarray(t_s, dtype=float), (n,)))
+        return K.world_rays(rel, _rows(d_head), self.pivot, nod, t, *self._pose_args)
 
     def cast_world(self, origins: np.ndarray, dirs: np.ndarray, t_s: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Nearest hit of world rays among the static world and the movers at times ``t_s``.
+        """Nearest hit of world rays ``(n, 3)`` among the static world and the movers at
+        times ``t_s (n,)`` [s].
 
         Returns ``(distance (n,) [m] inf = none, object_id (n,), part (n,))``.
         """
-        n = len(origins)
-        dist = np.full(n, np.inf)
-        obj = np.full(n, HIT_NONE)
-        part = np.full(n, -1)
+        o, d = _rows(origins), _rows(dirs)
+        n = len(o)
         if self._static is not None:
-            t, tri = self._static.cast(origins, dirs)
-            hit = np.isfinite(t)
-            dist[hit], obj[hit] = t[hit], HIT_STATIC
-            part[hit] = self._face_part[tri[hit]]
-        for k, (mover, caster) in enumerate(zip(self.scene.movers, self._movers)):
+            t, tri = self._static.cast(o, d)
+            dist, obj, part = K.first_hits(t, tri, self._face_part, HIT_STATIC)
+        else:
+            dist, obj, part = np.full(n, np.inf), np.full(n, HIT_NONE), np.full(n, -1)
+        if not self._movers:
+            return dist, obj, part
+        t_s = np.ascontiguousarray(np.broadcast_to(np.asarray(t_s, dtype=float), (n,)))
+        for k, (mover, caster, args) in enumerate(zip(self.scene.movers, self._movers,
+                                                      self._mover_args, strict=True)):
             # a rigidly translating object: cast each ray in the object's frame at its time
-            t, _ = caster.cast(origins - mover.position(t_s), dirs)
-            closer = t < dist
-            dist[closer], obj[closer], part[closer] = t[closer], 1 + k, -1
+            pos = (K.mover_positions(*args, t_s) if args is not None
+                   else _rows(mover.position(t_s)))
+            idx, om, o32, d32 = K.mover_rays(o, d, pos, caster._centre, caster._radius2,
+                                             caster._origin, caster._scale)
+            if len(idx):
+                K.merge_closer(idx, om, d, caster.first(o32, d32), caster.normals,
+                               caster._offset, 1 + k, dist, obj, part)
         return dist, obj, part
 
     # -- whole scan --------------------------------------------------------------------
@@ -487,16 +497,18 @@ class SceneSimulator:
         return steps, t, nod, off, first, o_w, d_w, bounces, alive
 
     def _truth(self, rays, dist, obj, part, rng, noise) -> ScanTruth:
-        """ScanTruth of one scan from its rays and their world hits."""
+        """ScanTruth of one scan from its rays and their world hits (the noise: one
+        ``rng.standard_normal(n)`` draw, as :func:`measure`)."""
         steps, t, nod, off, first, o_w, d_w, bounces, alive = rays
-        hit = alive & np.isfinite(dist)
-        true_r = np.where(hit, off + dist, np.nan)
-        pts = np.where(hit[:, None], o_w + np.where(hit, dist, 0.0)[:, None] * d_w, np.nan)
-        r = measure(true_r, self.lidar, rng, noise=noise)
+        z = rng.standard_normal(len(dist)) if noise else np.zeros(0)
+        near, knee, rel = self.lidar.range_noise
+        true_r, r, obj_out, part_out, pts = K.scan_truth(
+            np.ascontiguousarray(alive), dist, np.ascontiguousarray(off, dtype=float), o_w, d_w,
+            obj, part, z, bool(noise), float(near), float(knee), float(rel))
         return ScanTruth(steps=steps, t_s=t, nod_rad=nod, true_range_m=true_r, range_m=r,
-                         mirror=first, bounces=bounces, object_id=np.where(hit, obj, HIT_NONE),
-                         part=np.where(hit, part, -1), point_world=pts,
-                         range_min_m=self.lidar.range_min_m, range_max_m=self.lidar.range_max_m)
+                         mirror=first, bounces=bounces, object_id=obj_out, part=part_out,
+                         point_world=pts, range_min_m=self.lidar.range_min_m,
+                         range_max_m=self.lidar.range_max_m)
 
     def scans(self, n_scans: int, *, t0_s: float = 0.0,
               nod: float | Callable[[np.ndarray], np.ndarray] | None = None,

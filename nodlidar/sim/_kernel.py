@@ -1,0 +1,357 @@
+"""Compiled per-beam kernels of the simulator (:mod:`nodlidar.sim.raycast`), issue 16.
+
+A scan is ~700 beams; in numpy its per-beam work (world rays, float32 ray preparation for
+embree, float64 distances from the triangles' planes, the movers' per-beam positions and
+bounding-sphere cull, truth, noise and mm rounding) was about a hundred array calls of a
+few microseconds each. Here each stage is one loop over the beams. Embree still casts
+the triangles (the raycast module calls it between these kernels).
+
+Every kernel is ``@numba.njit(cache=True, nogil=True)`` (compiled once per machine into the
+numba cache; no fastmath, so IEEE order of operations is as written) and takes plain
+float64 / int64 / bool arrays: rays are ``(n, 3)`` C-ordered rows because that is what
+embree takes and :class:`~nodlidar.sim.raycast.ScanTruth` returns. Units: metres,
+seconds, radians. The formulas are those of :mod:`nodlidar.geometry` (Rodrigues,
+reflection, the nod pitch), of trimesh's ``intersects_first`` ray preparation and of
+:mod:`nodlidar.sim.scene`'s trajectories, operation for operation (tests/test_sim_kernel.py
+compares each with its numpy original).
+
+This module imports numba; only the simulator imports it (never ``import nodlidar``).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = [
+    "TRAJ_FIXED",
+    "TRAJ_CONSTANT_VELOCITY",
+    "TRAJ_BACK_AND_FORTH",
+    "rodrigues",
+    "reflect",
+    "world_rays",
+    "embree_rays",
+    "sphere_candidates",
+    "cull_embree_rays",
+    "first_hits",
+    "plane_distances",
+    "mover_positions",
+    "mover_rays",
+    "merge_closer",
+    "measure",
+    "scan_truth",
+]
+
+_jit = numba.njit(cache=True, nogil=True)
+
+#: trajectory kinds of :func:`mover_positions` (scene.Fixed, ConstantVelocity, BackAndForth)
+TRAJ_FIXED = 0
+TRAJ_CONSTANT_VELOCITY = 1
+TRAJ_BACK_AND_FORTH = 2
+
+# trimesh.util.unitize's zero threshold (trimesh.constants.tol.zero)
+_UNIT_ZERO = 1e-13
+# |d . n| below this: the ray runs along the triangle's plane (no distance)
+_DEN_MIN = 1e-12
+
+
+# -- scalar formulas (inlined into the loops) ---------------------------------------------
+@_jit
+def _rodrigues(x, y, z, kx, ky, kz, c, s):
+    """geometry.rotate_columns on one vector: ``v c + (k x v) s + k (k.v)(1 - c)``."""
+    kv = kx * x + ky * y + kz * z
+    kv = kv * (1.0 - c)
+    qx = x * c + (ky * z - kz * y) * s + kx * kv
+    qy = y * c + (kz * x - kx * z) * s + ky * kv
+    qz = z * c + (kx * y - ky * x) * s + kz * kv
+    return qx, qy, qz
+
+
+@_jit
+def _meets_sphere(ox, oy, oz, dx, dy, dz, centre, radius2):
+    """The half-line from o along d meets the ball of squared radius ``radius2`` about
+    ``centre (3,)``: the centre's squared distance from the line is ``ww - wd^2/dd``; a
+    ball behind the origin (wd < 0) is met only if the origin is inside it."""
+    wx, wy, wz = centre[0] - ox, centre[1] - oy, centre[2] - oz
+    wd = wx * dx + wy * dy + wz * dz
+    dd = dx * dx + dy * dy + dz * dz
+    ww = wx * wx + wy * wy + wz * wz
+    return (ww * dd - wd * wd <= radius2 * dd) and (wd >= 0 or ww <= radius2)
+
+
+@_jit
+def _embree_row(o32, d32, j, ox, oy, oz, dx, dy, dz, origin, scale):
+    """Row ``j`` of embree's float32 rays, exactly as trimesh prepares them:
+    ``intersects_first`` casts to float32 and unitizes (float32 squares, float64 norm),
+    ``_EmbreeWrap.run`` shifts/scales the float32 origin in float64 and casts back."""
+    fx, fy, fz = np.float32(dx), np.float32(dy), np.float32(dz)
+    sq = np.float64(fx * fx) + np.float64(fy * fy) + np.float64(fz * fz)
+    norm = np.sqrt(sq)
+    inv = 1.0 / norm if norm > _UNIT_ZERO else norm
+    d32[j, 0] = np.float32(np.float64(fx) * inv)
+    d32[j, 1] = np.float32(np.float64(fy) * inv)
+    d32[j, 2] = np.float32(np.float64(fz) * inv)
+    o32[j, 0] = np.float32((np.float64(np.float32(ox)) - origin[0]) * scale)
+    o32[j, 1] = np.float32((np.float64(np.float32(oy)) - origin[1]) * scale)
+    o32[j, 2] = np.float32((np.float64(np.float32(oz)) - origin[2]) * scale)
+
+
+@_jit
+def _plane_t(ox, oy, oz, dx, dy, dz, tri, normals, offset):
+    """float64 distance along d from o to triangle ``tri``'s plane ``x . n = offset``
+    (inf when the ray runs along the plane)."""
+    nx, ny, nz = normals[tri, 0], normals[tri, 1], normals[tri, 2]
+    num = offset[tri] - (ox * nx + oy * ny + oz * nz)
+    den = dx * nx + dy * ny + dz * nz
+    return num / den if abs(den) > _DEN_MIN else np.inf
+
+
+@_jit
+def _measure_one(r, z, noise, near_m, knee_m, rel):
+    """LidarModel.range_sigma_m noise (``z`` a standard normal draw) and mm rounding of
+    one true range [m]; not finite -> NaN."""
+    if not np.isfinite(r):
+        return np.nan
+    if noise:
+        sig = near_m if r <= knee_m else rel * r
+        r = r + z * sig
+    return np.rint(r * 1000.0) / 1000.0
+
+
+# -- array kernels ---------------------------------------------------------------------
+@_jit
+def rodrigues(v, axis, c, s):
+    """geometry.rotate_about_axis row by row: ``v (n, 3)`` about unit ``axis (n, 3)`` by
+    the angles whose cosine and sine are ``c, s (n,)``. Returns ``(n, 3)``."""
+    out = np.empty_like(v)
+    for i in range(v.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = _rodrigues(v[i, 0], v[i, 1], v[i, 2], axis[i, 0],
+                                                     axis[i, 1], axis[i, 2], c[i], s[i])
+    return out
+
+
+@_jit
+def reflect(d, nrm):
+    """geometry.reflect row by row: ``d - 2 (d.n) n``, ``d, nrm (n, 3)`` -> ``(n, 3)``."""
+    out = np.empty_like(d)
+    for i in range(d.shape[0]):
+        dn = d[i, 0] * nrm[i, 0] + d[i, 1] * nrm[i, 1] + d[i, 2] * nrm[i, 2]
+        for j in range(3):
+            out[i, j] = d[i, j] - 2.0 * dn * nrm[i, j]
+    return out
+
+
+@_jit
+def world_rays(rel, d_head, pivot, nod, t, rot, position, velocity, t0):
+    """Head-frame rays at per-beam nod and time -> world rays.
+
+    ``rel (n, 3)``: start points relative to the nod pivot [m]; ``d_head (n, 3)``: unit
+    directions; ``pivot (3,)`` [m]; ``nod, t (n,)`` [rad, s]; the sensor pose
+    ``p_w = rot (3, 3) p_s + position (3,) + (t - t0) velocity (3,)``.
+    The nod is geometry.pitch_about_pivot (``R_y(nod)`` about the pivot), the pose
+    scene.SensorPose.to_world. Returns ``origins (n, 3), directions (n, 3)`` [m].
+    """
+    n = rel.shape[0]
+    o = np.empty((n, 3))
+    d = np.empty((n, 3))
+    for i in range(n):
+        c, s = np.cos(nod[i]), np.sin(nod[i])
+        px = c * rel[i, 0] + s * rel[i, 2] + pivot[0]
+        py = rel[i, 1] + pivot[1]
+        pz = -s * rel[i, 0] + c * rel[i, 2] + pivot[2]
+        qx = c * d_head[i, 0] + s * d_head[i, 2]
+        qy = d_head[i, 1]
+        qz = -s * d_head[i, 0] + c * d_head[i, 2]
+        dt = t[i] - t0
+        for j in range(3):
+            o[i, j] = (px * rot[j, 0] + py * rot[j, 1] + pz * rot[j, 2]) + (position[j] + dt * velocity[j])
+            d[i, j] = qx * rot[j, 0] + qy * rot[j, 1] + qz * rot[j, 2]
+    return o, d
+
+
+@_jit
+def embree_rays(o, d, origin, scale):
+    """Every ray ``o, d (n, 3)`` as embree's float32 ``(n, 3)`` origins and directions of a
+    trimesh scene shifted by ``origin (3,)`` and scaled by ``scale``."""
+    n = o.shape[0]
+    o32 = np.empty((n, 3), dtype=np.float32)
+    d32 = np.empty((n, 3), dtype=np.float32)
+    for i in range(n):
+        _embree_row(o32, d32, i, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2],
+                    origin, scale)
+    return o32, d32
+
+
+@_jit
+def sphere_candidates(o, d, keep, centre, radius2):
+    """Indices (m,) int64 of the rays ``o, d (n, 3)`` with ``keep (n,)`` true whose
+    half-line meets the ball about ``centre (3,)`` of squared radius ``radius2`` [m^2]."""
+    n = o.shape[0]
+    idx = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        if keep[i] and _meets_sphere(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2],
+                                     centre, radius2):
+            idx[m] = i
+            m += 1
+    return idx[:m].copy()
+
+
+@_jit
+def cull_embree_rays(o, d, centre, radius2, origin, scale):
+    """The rays of ``o, d (n, 3)`` that meet the bounding sphere (``centre (3,)``, squared
+    radius [m^2]), as embree rays (see :func:`embree_rays`).
+    Returns ``(index (m,) int64, o32 (m, 3), d32 (m, 3))``."""
+    n = o.shape[0]
+    idx = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        if _meets_sphere(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], centre, radius2):
+            idx[m] = i
+            m += 1
+    o32 = np.empty((m, 3), dtype=np.float32)
+    d32 = np.empty((m, 3), dtype=np.float32)
+    for j in range(m):
+        i = idx[j]
+        _embree_row(o32, d32, j, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2],
+                    origin, scale)
+    return idx[:m].copy(), o32, d32
+
+
+@_jit
+def plane_distances(o, d, tri, normals, offset):
+    """float64 distance [m] along ``d`` from ``o (m, 3)`` to the plane of triangle ``tri (m,)``
+    (``normals (T, 3)``, ``offset (T,)``: ``x . n = offset``); inf where ``tri < 0``."""
+    m = tri.shape[0]
+    t = np.full(m, np.inf)
+    for j in range(m):
+        if tri[j] >= 0:
+            t[j] = _plane_t(o[j, 0], o[j, 1], o[j, 2], d[j, 0], d[j, 1], d[j, 2], tri[j],
+                            normals, offset)
+    return t
+
+
+@_jit
+def first_hits(t, tri, face_part, object_id):
+    """Hits of one mesh as the scan's first nearest hits: ``t (n,)`` [m] (inf none),
+    ``tri (n,)`` triangle, ``face_part (T,)`` part of each triangle. Returns
+    ``(dist (n,), obj (n,) object_id or -1, part (n,) or -1)``."""
+    n = t.shape[0]
+    dist = np.full(n, np.inf)
+    obj = np.full(n, -1, dtype=np.int64)
+    part = np.full(n, -1, dtype=np.int64)
+    for i in range(n):
+        if np.isfinite(t[i]):
+            dist[i] = t[i]
+            obj[i] = object_id
+            part[i] = face_part[tri[i]]
+    return dist, obj, part
+
+
+@_jit
+def _position(kind, p0, p1, leg_s, t0, t, out):
+    """One trajectory point ``out (3,)`` [m] at ``t`` [s]: Fixed (p0), ConstantVelocity
+    (``p0 + (t - t0) p1``, p1 the velocity) or BackAndForth (p0 -> p1 -> p0, one leg in
+    ``leg_s`` [s]), the formulas of scene.py."""
+    if kind == TRAJ_FIXED:
+        for j in range(3):
+            out[j] = p0[j]
+    elif kind == TRAJ_CONSTANT_VELOCITY:
+        dt = t - t0
+        for j in range(3):
+            out[j] = p0[j] + dt * p1[j]
+    else:
+        ph = (t - t0) % (2 * leg_s)  # Python/np.mod semantics: in [0, 2 leg)
+        frac = (ph if ph < leg_s else 2 * leg_s - ph) / leg_s
+        for j in range(3):
+            out[j] = p0[j] + frac * (p1[j] - p0[j])
+
+
+@_jit
+def mover_positions(kind, p0, p1, leg_s, t0, t):
+    """Trajectory points ``(n, 3)`` [m] at times ``t (n,)`` [s] (see ``_position``)."""
+    out = np.empty((t.shape[0], 3))
+    for i in range(t.shape[0]):
+        _position(kind, p0, p1, leg_s, t0, t[i], out[i])
+    return out
+
+
+@_jit
+def mover_rays(o, d, pos, centre, radius2, origin, scale):
+    """World rays ``o, d (n, 3)`` in a rigidly translating mover's frame (``o - pos``, the
+    mover's position ``pos (n, 3)`` [m] at each ray's time), culled to those meeting its
+    bounding sphere. Returns ``(index (m,), origins in the mover frame (m, 3) float64,
+    o32 (m, 3), d32 (m, 3))``."""
+    n = o.shape[0]
+    idx = np.empty(n, dtype=np.int64)
+    om = np.empty((n, 3))
+    m = 0
+    for i in range(n):
+        x, y, z = o[i, 0] - pos[i, 0], o[i, 1] - pos[i, 1], o[i, 2] - pos[i, 2]
+        if _meets_sphere(x, y, z, d[i, 0], d[i, 1], d[i, 2], centre, radius2):
+            idx[m] = i
+            om[m, 0], om[m, 1], om[m, 2] = x, y, z
+            m += 1
+    o32 = np.empty((m, 3), dtype=np.float32)
+    d32 = np.empty((m, 3), dtype=np.float32)
+    for j in range(m):
+        i = idx[j]
+        _embree_row(o32, d32, j, om[j, 0], om[j, 1], om[j, 2], d[i, 0], d[i, 1], d[i, 2],
+                    origin, scale)
+    return idx[:m].copy(), om[:m].copy(), o32, d32
+
+
+@_jit
+def merge_closer(idx, o, d, tri, normals, offset, object_id, dist, obj, part):
+    """A mover's hits into the scan's nearest hits, in place: ray ``idx[j]`` (origin
+    ``o[j]`` in the mover frame, direction ``d[idx[j]]``) hit triangle ``tri[j]``; where its
+    float64 distance is below ``dist``, set ``dist``, ``obj = object_id``, ``part = -1``."""
+    for j in range(idx.shape[0]):
+        if tri[j] < 0:
+            continue
+        i = idx[j]
+        t = _plane_t(o[j, 0], o[j, 1], o[j, 2], d[i, 0], d[i, 1], d[i, 2], tri[j], normals, offset)
+        if t < dist[i]:
+            dist[i] = t
+            obj[i] = object_id
+            part[i] = -1
+
+
+@_jit
+def measure(r, z, noise, near_m, knee_m, rel):
+    """The URG measurement of true ranges ``r (n,)`` [m] with standard normal draws
+    ``z (n,)`` (unused if not ``noise``): ``r + z sigma(r)`` rounded to the mm, sigma
+    ``near_m`` up to ``knee_m`` and ``rel r`` beyond (LidarModel.range_sigma_m); NaN where
+    ``r`` is not finite."""
+    out = np.empty(r.shape[0])
+    for i in range(r.shape[0]):
+        out[i] = _measure_one(r[i], z[i] if noise else 0.0, noise, near_m, knee_m, rel)
+    return out
+
+
+@_jit
+def scan_truth(alive, dist, off, o, d, obj, part, z, noise, near_m, knee_m, rel):
+    """Per-beam truth of one scan from its world rays ``o, d (n, 3)``, their nearest hits
+    ``dist (n,)`` [m] (inf none), ``obj, part (n,)`` and head-path offsets ``off (n,)`` [m];
+    ``alive (n,)`` false: no return. Returns ``(true range (n,) [m] NaN none, reported
+    range (n,) [m], object id (n,), part (n,), hit point (n, 3) [m] NaN none)``."""
+    n = dist.shape[0]
+    true_r = np.empty(n)
+    r = np.empty(n)
+    obj_out = np.empty(n, dtype=np.int64)
+    part_out = np.empty(n, dtype=np.int64)
+    pts = np.empty((n, 3))
+    for i in range(n):
+        if alive[i] and np.isfinite(dist[i]):
+            true_r[i] = off[i] + dist[i]
+            for j in range(3):
+                pts[i, j] = o[i, j] + dist[i] * d[i, j]
+            obj_out[i] = obj[i]
+            part_out[i] = part[i]
+        else:
+            true_r[i] = np.nan
+            pts[i, 0] = pts[i, 1] = pts[i, 2] = np.nan
+            obj_out[i] = -1
+            part_out[i] = -1
+        r[i] = _measure_one(true_r[i], z[i] if noise else 0.0, noise, near_m, knee_m, rel)
+    return true_r, r, obj_out, part_out, pts
