@@ -340,3 +340,103 @@ def test_calibrated_range_model_puts_points_back_on_the_truth():
                      nod_samples())
     off = np.linalg.norm(sim.scene.sensor.to_world(plain.xyz, plain.t) - truth[hit], axis=1)
     assert off.min() > 0.019  # at least the 2 cm offset
+
+
+# --- the compiled per-point kernel (nodlidar/runtime/_assembly_kernel.py) ---
+
+
+def test_kernel_rotation_is_geometry_rotate_columns():
+    """The kernel's scalar Rodrigues and half-angle cos/sin against
+    geometry.rotate_columns and beams.cos_sin (the numpy forms the kernel must repeat):
+    random unit axes, angles over +-pi, vectors up to ~20 m. The same formula in the same
+    order agrees to rounding; 1e-12 m on 20 m vectors leaves ~200 ulp for a compiler's
+    different rounding and nothing for another formula (a sign or a term wrong is ~1 m)."""
+    from nodlidar.beams import cos_sin
+    from nodlidar.geometry import rotate_columns
+    from nodlidar.runtime import _assembly_kernel as K
+
+    rng = np.random.default_rng(11)
+    n = 400
+    v = rng.normal(0.0, 5.0, (n, 3))
+    k = rng.normal(size=(n, 3))
+    k /= np.linalg.norm(k, axis=1)[:, None]
+    a = rng.uniform(-np.pi, np.pi, n)
+    c, s = cos_sin(a)
+    cs = np.array([K.cos_sin(x) for x in a])
+    assert_allclose(cs[:, 0], c, atol=1e-15, rtol=0)  # the same three operations
+    assert_allclose(cs[:, 1], s, atol=1e-15, rtol=0)
+    want = np.stack(rotate_columns(v[:, 0], v[:, 1], v[:, 2], k[:, 0], k[:, 1], k[:, 2], c, s),
+                    axis=-1)
+    got = np.array([K.rodrigues(*v[i], *k[i], c[i], s[i]) for i in range(n)])
+    assert_allclose(got, want, atol=1e-12, rtol=0)
+    # and an independent form: the rotation matrix of scipy
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec(k * a[:, None]).as_matrix()
+    assert_allclose(got, np.einsum("nij,nj->ni", R, v), atol=1e-12, rtol=0)
+
+
+def test_assembly_does_not_depend_on_beam_order():
+    """The kernel looks up each beam's nod sample interval, lift sample interval and
+    keyframe pair starting from the previous beam's (beams come in time order, so that is
+    mostly right): the same beams shuffled must give the same points, bitwise (the interval
+    holding a time is unique, so each point gets the same arithmetic). World frame from a
+    3D pose track, the left side lifting mid-batch, nod extrapolated past its samples."""
+    from scipy.spatial.transform import Rotation
+
+    model = AssemblyModel.from_design(DESIGN, TABLE_I_PERTURBATIONS, "table-1")
+    rng = np.random.default_rng(5)
+    m = 12
+    ranges = rng.uniform(0.2, 5.0, (m, LIDAR.n_steps))
+    ranges[rng.random(ranges.shape) < 0.05] = np.nan
+    batch = ScanBatch.from_arrays(LIDAR.steps, ranges, 0.05 + np.arange(m) * T_SCAN)
+    t_nod = np.arange(0.0, 0.9, 0.004)
+    nod = (t_nod, 0.3 * np.sin(3 * t_nod))
+    up = model.lift_left.lifted_rad
+    lifting = (np.array([0.0, 0.4, 0.6, 5.0]), np.array([0.0, 0.0, up, up]))
+    tp = np.linspace(-0.2, 1.5, 9)
+    T = np.tile(np.eye(4), (len(tp), 1, 1))
+    T[:, :3, :3] = Rotation.random(len(tp), random_state=2).as_matrix()
+    T[:, :3, 3] = rng.normal(size=(len(tp), 3))
+    kw = dict(mirror_left=lifting, frame="world", robot_from_sensor=np.eye(4),
+              world_from_robot=PoseTrack(tp, T), nod_outside="extrapolate")
+    a = assemble(model, batch, nod, **kw)
+    order = rng.permutation(batch.steps.size)
+    shuffled = ScanBatch(batch.steps[order], batch.ranges_m[order], batch.scan[order],
+                         batch.scan_time_s)
+    b = assemble(model, shuffled, nod, **kw)
+    assert a.meta == b.meta and a.meta["mirror_moving"] > 0 and a.meta["blocked"] > 0
+    ia = np.lexsort((a.step, a.scan))
+    ib = np.lexsort((b.step, b.scan))
+    for name in ("xyz", "t", "range_m", "nod_rad", "step", "scan", "mirror", "lifted"):
+        assert_array_equal(getattr(a, name)[ia], getattr(b, name)[ib], err_msg=name)
+
+
+def test_kernel_bad_input_named():
+    """What the kernel would read unchecked is checked first: a scan index outside the
+    scan times, lift samples without a sample."""
+    model = AssemblyModel.from_design(DESIGN)
+    batch = ScanBatch.from_arrays(LIDAR.steps, np.ones((2, LIDAR.n_steps)), [0.0, 0.1])
+    bad = dataclasses.replace(batch, scan=batch.scan + 1)
+    with pytest.raises(ParameterError, match=r"scans.scan.*0\.\.1"):
+        assemble(model, bad, 0.0)
+    with pytest.raises(ParameterError, match="lift samples"):
+        assemble(model, batch, 0.0, mirror_left=(np.zeros(0), np.zeros(0)))
+    with pytest.raises(ParameterError, match="nod samples"):
+        assemble(model, batch, (np.array([0.0]), np.array([0.1])), nod_outside="extrapolate")
+
+
+def test_numba_loaded_by_assembling_only():
+    """Reading clouds and importing the assembly module load no numba (the CLI's other
+    commands stay light); the first assembly does."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np, nodlidar.runtime.cloud, nodlidar.runtime.assembly as A\n"
+            "print('numba' in sys.modules)\n"
+            "A.PoseTrack([0.0], np.eye(4)[None]).apply([0.0], np.zeros((1, 3)))\n"
+            "print('numba' in sys.modules)\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=120, cwd=ROOT)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert p.stdout.split() == ["False", "True"]

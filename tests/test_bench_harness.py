@@ -86,7 +86,8 @@ def test_cli_parser_imports_no_numpy():
 
 # what `nodlidar design` must not import (issue 16): scipy.optimize alone cost ~0.5 s of a
 # ~1 s start-up; the plotting, mesh and tracking stacks belong to other commands
-DESIGN_FORBIDDEN = ("scipy", "matplotlib", "trimesh", "stonesoup", "cadquery", "open3d")
+DESIGN_FORBIDDEN = ("scipy", "matplotlib", "trimesh", "stonesoup", "cadquery", "open3d",
+                    "numba")
 
 
 @pytest.mark.parametrize("design", ["urg04lx-paper.toml", "urg04lx-paper-chained.toml",

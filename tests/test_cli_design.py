@@ -95,7 +95,8 @@ def test_console_script_has_no_traceback(tmp_path):
 def test_import_nodlidar_stays_light():
     code = ("import sys, nodlidar, nodlidar.solver, nodlidar.beams, nodlidar.verify, "
             "nodlidar.closed_form, nodlidar.cli; nodlidar.cli.build_parser(); "
-            "heavy = [m for m in ('cadquery', 'OCP', 'matplotlib', 'dask', 'distributed') "
+            "heavy = [m for m in ('cadquery', 'OCP', 'matplotlib', 'dask', 'distributed', "
+            "'numba') "
             "if m in sys.modules]; print(heavy); sys.exit(1 if heavy else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr

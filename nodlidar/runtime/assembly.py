@@ -31,11 +31,11 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..beams import DIRECT, BeamColumns, BeamModel, cos_sin  # noqa: F401  (BeamModel: type of fields)
+from ..beams import DIRECT, BeamColumns, BeamModel  # noqa: F401  (BeamModel: type of fields)
 from ..dynamixel import RAD_PER_TICK
 from ..errors import ParameterError, require
 from ..frames import check_transform, refuse_renamed
-from ..geometry import CLEAR, TOL, rotate_about_axis, rotate_columns
+from ..geometry import CLEAR, TOL, rotate_about_axis
 from .servo_angles import MirrorLiftProfile, interpolate_angle, lift_profiles
 
 if TYPE_CHECKING:
@@ -55,8 +55,6 @@ DEPLOYED, LIFTED, BETWEEN = 0, 1, 2
 # MirrorLift's arrival tolerance; a lift fraction of 0.3 % tilts a reflected beam by a few
 # mrad at most (2 x 0.003 x lift angle), below the URG's beam divergence.
 LIFT_TOLERANCE_RAD = 3 * RAD_PER_TICK
-#: Points projected per chunk: 8 192 float64 = 64 KiB per temporary (see :func:`assemble`).
-CHUNK = 8192
 
 
 @dataclass(frozen=True, eq=False)
@@ -290,68 +288,39 @@ class PoseTrack:
 
     def apply(self, t: np.ndarray, p: np.ndarray) -> np.ndarray:
         """Points ``p`` (n, 3) [m] in the robot frame at times ``t`` (n,) [s] -> world
-        frame (n, 3): the same interpolated poses as :meth:`at`, applied without building
-        the (n, 4, 4) matrices (:meth:`apply_columns`)."""
-        p = np.asarray(p, dtype=float)
-        x, y, z = self.apply_columns(np.asarray(t, dtype=float), p[:, 0], p[:, 1], p[:, 2])
-        out = np.empty((len(x), 3))
-        out[:, 0], out[:, 1], out[:, 2] = x, y, z
+        frame (n, 3): the same interpolated poses as :meth:`at`, applied per point by the
+        compiled kernel :func:`~nodlidar.runtime._assembly_kernel.apply_poses` (the slerp
+        :func:`assemble` applies) without building the (n, 4, 4) matrices."""
+        from ._assembly_kernel import apply_poses
+
+        t = np.ascontiguousarray(t, dtype=float).reshape(-1)
+        out = np.array(p, dtype=float, order="C")  # a copy: the kernel works in place
+        require(out.shape == (t.size, 3), "p.shape", out.shape, f"({t.size}, 3)")
+        apply_poses(np.asarray(self.t_s, float), self._segment_table, t, out)
         return out
 
     @cached_property
-    def _segments(self) -> dict[str, np.ndarray]:
-        """Per keyframe pair i -> i+1, as columns (structure of arrays, one scalar gathered
-        per point each): rotation axis ``k*`` and angle ``th`` of ``R_i^T R_(i+1)`` (zero
-        axis below ``TOL.angle_rad``), the keyframe rotation ``R_i`` by entries ``rJK``,
-        translation ``p*`` and its change ``dp*`` to the next keyframe."""
-        from scipy.spatial.transform import Rotation
-
+    def _segment_table(self) -> np.ndarray:
+        """Per keyframe pair i -> i+1, the row the kernel reads for a point in it
+        (``(max(k-1, 1), 19)`` float64, columns
+        :data:`~nodlidar.runtime._assembly_kernel.SEG`): angle [rad] and unit axis of
+        ``R_i^T R_(i+1)`` (zero axis below ``TOL.angle_rad``), ``R_i`` row-major, the
+        translation ``p_i`` [m] and its change to the next keyframe [m]. One keyframe: its
+        pose with no rotation or change (the slerp is then that constant transform)."""
         T = np.asarray(self.world_from_robot, float)
         R = T[:, :3, :3]
-        w = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()
-        k, th = self._axis_angle(w)
-        seg = {"th": th, "kx": k[:, 0].copy(), "ky": k[:, 1].copy(), "kz": k[:, 2].copy()}
-        for j in range(3):
-            for m in range(3):
-                seg[f"r{j}{m}"] = R[:-1, j, m].copy()
-            seg[f"p{j}"] = T[:-1, j, 3].copy()
-            seg[f"dp{j}"] = np.diff(T[:, j, 3])
+        n = max(len(T) - 1, 1)
+        seg = np.zeros((n, 19))
+        if len(T) > 1:
+            from scipy.spatial.transform import Rotation
+
+            w = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec()
+            k, th = self._axis_angle(w)
+            seg[:, 0], seg[:, 1:4] = th, k
+            seg[:, 16:19] = np.diff(T[:, :3, 3], axis=0)
+        seg[:, 4:13] = R[:n].reshape(n, 9)
+        seg[:, 13:16] = T[:n, :3, 3]
         return seg
-
-    def apply_columns(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`apply` on columns: robot-frame ``x, y, z`` (n,) [m] at times ``t`` (n,)
-        [s] -> world-frame columns.
-
-        Per point: its keyframe pair ``i`` and fraction ``f`` (one ``np.interp`` of the
-        keyframe index), the slerp ``R_i exp(f th_i [k_i])``: the vector turned about the
-        keyframe pair's axis by ``f th_i`` (:func:`~nodlidar.geometry.rotate_columns`),
-        then ``R_i`` entry by entry and the linearly interpolated translation: scalar
-        gathers and multiply-adds, no 3x3 BLAS products, no (n, 3) gathers.
-        """
-        T = np.asarray(self.world_from_robot, float)
-        n_k = T.shape[0]
-        if n_k == 1:
-            return _affine(T[0], x, y, z)
-        ts = np.asarray(self.t_s, float)
-        # fractional keyframe index: np.interp clamps outside the track (as the slerp does)
-        u = np.interp(t, ts, np.arange(n_k, dtype=float))
-        i = u.astype(np.intp)
-        np.minimum(i, n_k - 2, out=i)
-        f = u - i
-        g = self._segments
-        c, s = cos_sin(f * g["th"].take(i))
-        qx, qy, qz = rotate_columns(x, y, z, g["kx"].take(i), g["ky"].take(i),
-                                    g["kz"].take(i), c, s)
-        out = []
-        for j in range(3):
-            o = g[f"r{j}0"].take(i) * qx
-            o += g[f"r{j}1"].take(i) * qy
-            o += g[f"r{j}2"].take(i) * qz
-            o += g[f"p{j}"].take(i)
-            o += f * g[f"dp{j}"].take(i)
-            out.append(o)
-        return out[0], out[1], out[2]
 
     @staticmethod
     def _axis_angle(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -458,6 +427,21 @@ class AssemblyModel:
                                   BeamColumns.of(self.lifted, np.full(n, DIRECT)))
 
     @cached_property
+    def kernel_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What the compiled kernel reads per step (built once per model): the rows of
+        :attr:`columns` as a ``(2 n_steps, 13)`` float64 table (columns
+        :data:`~nodlidar.runtime._assembly_kernel.ROW`, the pivot per row), their mirror
+        indices (2 n_steps,) int16, and each step's time after step 0 [s] (n_steps,)
+        (:meth:`LidarModel.beam_time_s`, the one place of that convention)."""
+        c = self.columns
+        m = len(c.ax)
+        pv = np.broadcast_to(c.pivot, (m, 3))
+        rows = np.column_stack([c.ax, c.ay, c.az, c.bx, c.by, c.bz, c.t_mirror, c.d0x, c.d0y,
+                                c.d0z, pv[:, 0], pv[:, 1], pv[:, 2]]).astype(float, order="C")
+        step_dt = np.ascontiguousarray(self.lidar.beam_time_s(0.0, self.lidar.steps))
+        return rows, np.ascontiguousarray(c.mirror, dtype=np.int16), step_dt
+
+    @cached_property
     def step_side(self) -> np.ndarray:
         """(n_steps,) int8: the side (0 left, 1 right) of each step's deployed mirror,
         -1 for a direct step."""
@@ -486,23 +470,6 @@ def mirror_state(angle_rad: np.ndarray, profile: MirrorLiftProfile,
     out[np.abs(a - profile.deployed_rad) <= tolerance_rad] = DEPLOYED
     out[np.abs(a - profile.lifted_rad) <= tolerance_rad] = LIFTED
     return out
-
-
-def _side_state(samples: Any, t: np.ndarray, profile: MirrorLiftProfile | None,
-                tol: float) -> np.ndarray:
-    """Mirror state (int8, shape of ``t``) of one side at beam times ``t`` [s]."""
-    const = _side_constant(samples, (np.inf, -np.inf), profile, tol)  # validates
-    if samples is None or isinstance(samples, str):
-        return np.full(t.shape, const, dtype=np.int8)
-    assert profile is not None  # _side_constant raised otherwise
-    smp = AngleSamples.of(samples)
-    uniform = _uniform_state(smp.angle_rad, profile, tol)
-    if uniform is None:
-        return mirror_state(smp.at(t, "nan"), profile, tol)
-    # every sample well inside one end's band: so is every interpolated angle (the bands
-    # are intervals, disjoint here); outside the samples the angle is NaN -> BETWEEN
-    inside = (t >= smp.t_s[0]) & (t <= smp.t_s[-1])
-    return np.where(inside, np.int8(uniform), np.int8(BETWEEN))
 
 
 def _side_constant(samples: Any, t_range: tuple[float, float],
@@ -537,37 +504,6 @@ def _uniform_state(a: np.ndarray, profile: MirrorLiftProfile, tol: float) -> int
         if float(np.max(np.abs(a - end))) <= tol - margin:
             return state
     return None
-
-
-def _affine(T: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``T`` (4, 4) or (n, 4, 4) applied to points given as columns ``x, y, z`` (n,):
-    multiply-adds on columns (``p @ R.T`` on (n, 3) starts multithreaded BLAS for nine
-    numbers per point). A constant transform's exact 0 and 1 entries are skipped (the
-    same numbers: ``0 y`` adds nothing to a finite sum, ``1 x`` is ``x``): a sensor
-    mounted square on the robot costs three additions."""
-    out = []
-    for j in range(3):
-        if T.ndim == 2:
-            o: np.ndarray | None = None
-            for e, v in zip(T[j, :3].tolist(), (x, y, z)):
-                if e == 0.0:
-                    continue
-                term = v if e == 1.0 else e * v
-                if o is None:
-                    o = term.copy() if term is v else term  # o is ours to add into
-                else:
-                    o += term
-            if o is None:
-                o = np.zeros_like(x)
-            o += T[j, 3]
-        else:
-            o = T[:, j, 0] * x
-            o += T[:, j, 1] * y
-            o += T[:, j, 2] * z
-            o += T[:, j, 3]
-        out.append(o)
-    return out[0], out[1], out[2]
 
 
 def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
@@ -624,101 +560,104 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
     if frame == "world":
         require(world_from_robot is not None, "world_from_robot", None,
                 "poses for frame 'world'")
+    # the compiled kernel (numba) is loaded by the first assembly, not by importing this
+    from . import _assembly_kernel as _kernel
+
     lidar = model.lidar
-    # Every beam goes through time, nod and mirror state (cheap per-beam scalars); the
-    # drops are decided in one mask and applied once; only the kept points are projected.
-    steps_all = np.asarray(scans.steps)
-    r_all = np.asarray(scans.ranges_m, dtype=float)
+    steps = np.ascontiguousarray(scans.steps, dtype=np.int64)
+    r_all = np.ascontiguousarray(scans.ranges_m, dtype=float)
+    scan_i = np.ascontiguousarray(scans.scan, dtype=np.int64)
+    scan_time = np.ascontiguousarray(scans.scan_time_s, dtype=float)
     n_beams = r_all.size
-    ok = np.isfinite(r_all)
-    ok &= r_all > 0
-    n_ok = int(np.count_nonzero(ok))
-    lidar.check_step(steps_all, "steps")
-    idx = steps_all.astype(np.intp) - lidar.step_min
-    scan_all = np.asarray(scans.scan)
-    t_all = lidar.beam_time_s(np.asarray(scans.scan_time_s, float).take(scan_all), steps_all)
+    require(steps.shape == r_all.shape == scan_i.shape and r_all.ndim == 1, "scans.shape",
+            (steps.shape, r_all.shape, scan_i.shape), "three (N,) arrays")
+    lidar.check_step(steps, "steps")
+    if n_beams:  # the kernel reads scan_time[scan] unchecked
+        require(int(scan_i.min()) >= 0 and int(scan_i.max()) < scan_time.size, "scans.scan",
+                f"{int(scan_i.min())}..{int(scan_i.max())}", f"0..{scan_time.size - 1}")
+    rows, row_mirror, step_dt = model.kernel_tables
 
+    # the nod: samples (sorted, duplicates dropped) interpolated per beam by the kernel
+    require(nod_outside in ("nan", "clamp", "extrapolate"), "nod_outside", nod_outside,
+            "'nan', 'clamp' or 'extrapolate'")
     if isinstance(nod, (int, float)):
-        nod_all = np.full(t_all.shape, float(nod))
+        nod_t, nod_a, nod_mode = np.zeros(1), np.array([float(nod)]), _kernel.CONSTANT
     else:
-        nod_all = AngleSamples.of(nod).at(t_all, nod_outside)
-    live = ok & np.isfinite(nod_all)
-    n_no_nod = n_ok - int(np.count_nonzero(live))
+        smp = AngleSamples.of(nod)
+        n_min = 2 if nod_outside == "extrapolate" else 1
+        require(smp.t_s.size >= n_min, "nod samples", smp.t_s.size, f">= {n_min} samples")
+        nod_t, nod_a = smp.t_s, smp.angle_rad
+        nod_mode = {"nan": _kernel.NAN, "clamp": _kernel.CLAMP,
+                    "extrapolate": _kernel.EXTRAPOLATE}[nod_outside]
 
-    # mirror state per side, evaluated on that side's beams only
-    state: np.ndarray | None = None  # None: every beam DEPLOYED
-    side = None
-    t_range = (float(t_all.min()), float(t_all.max())) if t_all.size else (np.inf, -np.inf)
+    # mirror state per side: constant over every beam time (no per-beam work), or from the
+    # side's lift samples per beam (in the kernel). Any range holding every beam time will
+    # do for the constant test (the interpolated state is the same either way).
+    if n_beams:
+        t_range = (float(scan_time.min() + step_dt.min()), float(scan_time.max() + step_dt.max()))
+    else:
+        t_range = (np.inf, -np.inf)
+    side_mode = np.zeros(2, dtype=np.int64)
+    bands = np.zeros((2, 3))
+    lift = [(np.zeros(1), np.zeros(1)), (np.zeros(1), np.zeros(1))]
     for k, samples, prof in ((0, mirror_left, lift_left or model.lift_left),
                              (1, mirror_right, lift_right or model.lift_right)):
         const = _side_constant(samples, t_range, prof, lift_tolerance_rad)
-        if const == DEPLOYED:
+        if const is not None:
+            side_mode[k] = const
             continue
-        if state is None:
-            state = np.zeros(t_all.shape, dtype=np.int8)  # DEPLOYED
-            side = model.step_side.take(idx)
-        on = np.flatnonzero(side == k)
-        state[on] = const if const is not None else _side_state(samples, t_all[on], prof,
-                                                                 lift_tolerance_rad)
-    clear = model.clear.take(idx)
-    if state is None:  # mirrors deployed throughout: nothing moving, no per-beam state
-        n_moving = 0
-        keep_mask = live & clear
-        n_blocked = int(np.count_nonzero(live)) - int(np.count_nonzero(keep_mask))
-    else:
-        moving = live & (state == BETWEEN)
-        n_moving = int(np.count_nonzero(moving))
-        blocked = live & (state == DEPLOYED)
-        blocked &= ~clear
-        n_blocked = int(np.count_nonzero(blocked))
-        keep_mask = live & ~moving & ~blocked
-    keep = np.flatnonzero(keep_mask)
-
-    steps, r, scan_i = steps_all.take(keep), r_all.take(keep), scan_all.take(keep)
-    t, nod_rad, idx = t_all.take(keep), nod_all.take(keep), idx.take(keep)
-    if model.range_offset_m or model.range_scale:  # the calibrated lidar range model, inverted
-        r = (r - model.range_offset_m) / (1.0 + model.range_scale)
-    if state is None:
-        lifted = np.zeros(len(keep), dtype=bool)
-        rows = idx
-    else:
-        lifted = state.take(keep) == LIFTED
-        rows = idx + lifted * lidar.n_steps  # deployed rows first, then the lifted ones
-    cols = model.columns
-    mirror = cols.mirror.take(rows)
+        assert prof is not None  # _side_constant raised otherwise
+        sm = AngleSamples.of(samples)
+        require(sm.t_s.size >= 1, "lift samples", sm.t_s.size, ">= 1 sample")
+        side_mode[k] = -1
+        lift[k] = (sm.t_s, sm.angle_rad)
+        bands[k] = (prof.deployed_rad, prof.lifted_rad, lift_tolerance_rad)
 
     track: PoseTrack | None = None
-    W: np.ndarray | None = None  # per-point world_from_robot (n, 4, 4) of a callable
+    callable_pose = None
     if frame == "world":
         if isinstance(world_from_robot, PoseTrack):
-            track = world_from_robot
+            if len(world_from_robot.t_s) == 1:  # one pose: a constant transform
+                track_T = np.asarray(world_from_robot.world_from_robot, float)[0]
+                robot_T = track_T @ robot_T
+            else:
+                track = world_from_robot
         elif callable(world_from_robot):
-            W = np.asarray(world_from_robot(t), dtype=float)
-            if W.shape not in ((4, 4), (len(t), 4, 4)):
-                raise ParameterError("world_from_robot(t).shape", W.shape,
-                                     f"(4, 4) or ({len(t)}, 4, 4)")
-            W = check_transform(W, "world_from_robot(t)", stack=W.ndim == 3)
+            callable_pose = world_from_robot
         else:
             W0 = check_transform(world_from_robot, "world_from_robot")
             robot_T = W0 @ robot_T  # one constant transform (4x4 @ 4x4: no BLAS threads)
-    xyz = np.empty((len(r), 3))
-    # in chunks: each temporary stays below glibc's mmap threshold (128 KiB) and in cache,
-    # so it is reused rather than page-faulted in afresh (whole-array temporaries cost
-    # ~2 800 page faults per 100 scans, half the time)
-    for a in range(0, len(r), CHUNK):
-        sl = slice(a, a + CHUNK)
-        x, y, z = cols.project(rows[sl], r[sl], *cos_sin(nod_rad[sl]))
-        if frame != "sensor":
-            x, y, z = _affine(robot_T, x, y, z)
-        if track is not None:
-            x, y, z = track.apply_columns(t[sl], x, y, z)
-        elif W is not None:
-            x, y, z = _affine(W if W.ndim == 2 else W[sl], x, y, z)
-        xyz[sl, 0], xyz[sl, 1], xyz[sl, 2] = x, y, z
+    frame_mode = 0 if frame == "sensor" else 2 if track is not None else 1
+    pose_t = np.zeros(1) if track is None else np.asarray(track.t_s, float)
+    pose_seg = np.zeros((1, 19)) if track is None else track._segment_table
+
+    # outputs for every beam; the kernel writes the kept ones first (the cloud's arrays
+    # are views of their first n rows: at most the error codes' share unused)
+    xyz = np.empty((n_beams, 3))
+    t = np.empty(n_beams)
+    r = np.empty(n_beams)
+    nod_rad = np.empty(n_beams)
+    step_out = np.empty(n_beams, dtype=np.int32)
+    scan_out = np.empty(n_beams, dtype=np.int32)
+    mirror = np.empty(n_beams, dtype=np.int16)
+    lifted = np.empty(n_beams, dtype=bool)
+    n, n_ok, n_no_nod, n_moving, n_blocked = _kernel.assemble_points(
+        steps, r_all, scan_i, scan_time, lidar.step_min, step_dt, rows, row_mirror,
+        lidar.n_steps, model.step_side, np.ascontiguousarray(model.clear, dtype=bool), nod_t,
+        nod_a, nod_mode, side_mode,
+        lift[0][0], lift[0][1], lift[1][0], lift[1][1], bands, float(model.range_offset_m),
+        float(model.range_scale), frame_mode, np.ascontiguousarray(robot_T[:3]), pose_t,
+        pose_seg, xyz, t, r, nod_rad, step_out, scan_out, mirror, lifted)
+    xyz, t, r, nod_rad = xyz[:n], t[:n], r[:n], nod_rad[:n]
+    if callable_pose is not None:  # per-point poses of the kept points' times
+        W = np.asarray(callable_pose(t), dtype=float)
+        if W.shape not in ((4, 4), (n, 4, 4)):
+            raise ParameterError("world_from_robot(t).shape", W.shape,
+                                 f"(4, 4) or ({n}, 4, 4)")
+        W = check_transform(W, "world_from_robot(t)", stack=W.ndim == 3)
+        _kernel.apply_transforms(np.ascontiguousarray(np.broadcast_to(W, (n, 4, 4))), xyz)
     stats = AssemblyStats(beams=n_beams, error_codes=n_beams - n_ok, no_nod=n_no_nod,
-                          mirror_moving=n_moving, blocked=n_blocked, points=len(r))
-    return PointCloud(xyz, t, steps.astype(np.int32, copy=False),
-                      mirror.astype(np.int16, copy=False), scan_i.astype(np.int32, copy=False),
-                      r, frame, model.design_name, model.design_hash,
-                      model.calibration_id, model.deployed.mirror_names, asdict(stats),
-                      nod_rad, lifted)
+                          mirror_moving=n_moving, blocked=n_blocked, points=n)
+    return PointCloud(xyz, t, step_out[:n], mirror[:n], scan_out[:n], r, frame,
+                      model.design_name, model.design_hash, model.calibration_id,
+                      model.deployed.mirror_names, asdict(stats), nod_rad, lifted[:n])
