@@ -10,13 +10,24 @@ taken per adjacent pair and the median reported. Figures (for benchmarks/run.py)
 
 * ``ratio_vs_bare``, ``points_per_s``: 100 scans (10 s of URG-04LX data, 68 200 beams);
 * ``ratio_vs_bare_scans<N>``, ``points_per_s_scans<N>``: the scaling curve, N = 1, 10,
-  100, 1000 scans in one call.
+  100, 1000 scans in one call;
+* the compiled kernel's one-off costs, each in a fresh process (wall time, what a user
+  waits for): ``jit_import_s`` (importing numba and the kernel module),
+  ``jit_compile_cold_s`` (the first ``assemble`` with ``NUMBA_CACHE_DIR`` a new empty
+  directory: numba compiles and writes its cache) and ``jit_load_warm_s`` (the first
+  ``assemble`` in the next process with that cache: numba loads the compiled kernel);
+  ``jit_steady_s`` is a later call of the same 100 scans in those processes, for scale.
 
 Run: ``.venv/bin/python benchmarks/bench_assembly.py``.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -81,6 +92,38 @@ def setup(model: AssemblyModel, n_scans: int, seed: int = 0):
     return full, bare, batch.ranges_m.size
 
 
+# run in a fresh interpreter by jit_first_call(): the first assemble after the imports
+_FIRST_CALL = """
+import json, sys, time
+sys.path.insert(0, {here!r})
+import bench_assembly as B
+from nodlidar.runtime.assembly import AssemblyModel
+from nodlidar.solver import solve
+from nodlidar.spec import load_design
+import scipy.spatial.transform  # PoseTrack's keyframe table: assembly's import, not numba's
+model = AssemblyModel.from_design(solve(load_design(B.DESIGN)))
+full, _, _ = B.setup(model, B.N_SCANS)
+t0 = time.perf_counter()
+import nodlidar.runtime._assembly_kernel
+t1 = time.perf_counter()
+full()
+t2 = time.perf_counter()
+full()
+t3 = time.perf_counter()
+print(json.dumps({{"import": t1 - t0, "first": t2 - t1, "steady": t3 - t2}}))
+"""
+
+
+def jit_first_call(cache_dir: str) -> dict[str, float]:
+    """Seconds to import the kernel module, for the first and for a second ``assemble``
+    of 100 scans, in a fresh interpreter whose numba cache is ``cache_dir``."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=cache_dir)
+    code = _FIRST_CALL.format(here=str(Path(__file__).resolve().parent))
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       env=env, timeout=600, check=True)
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
 def main() -> dict[str, float]:
     design = solve(load_design(DESIGN))
     model = AssemblyModel.from_design(design)
@@ -108,6 +151,16 @@ def main() -> dict[str, float]:
         print(f"  {n:5d} scans ({npts:7d} beams): {p / 1e6:6.2f} M points/s, ratio {rr:.3f}")
         out[f"ratio_vs_bare_scans{n}"] = rr
         out[f"points_per_s_scans{n}"] = p
+
+    with tempfile.TemporaryDirectory(prefix="numba-cache-") as cache:
+        cold = jit_first_call(cache)  # empty cache: compiles, writes the cache
+        warm = jit_first_call(cache)  # the next process: loads it
+    print("compiled kernel, fresh process each (wall time): import numba + kernel "
+          f"{cold['import']:.2f} / {warm['import']:.2f} s; first assemble: cold cache "
+          f"{cold['first']:.2f} s, warm cache {warm['first']:.3f} s; a later call "
+          f"{warm['steady'] * 1e3:.1f} ms")
+    out.update(jit_import_s=warm["import"], jit_compile_cold_s=cold["first"],
+               jit_load_warm_s=warm["first"], jit_steady_s=warm["steady"])
     return out  # for benchmarks/run.py
 
 
