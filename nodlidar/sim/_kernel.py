@@ -142,20 +142,26 @@ def reflect(d, nrm):
 
 
 @_jit
-def world_rays(rel, d_head, pivot, nod, t, rot, position, velocity, t0):
-    """Head-frame rays at per-beam nod and time -> world rays.
+def world_rays(rel, d_head, pivot, cos_nod, sin_nod, t, rot, position, velocity, t0, origin, scale):
+    """Head-frame rays at per-beam nod and time -> world rays, also prepared for embree.
 
     ``rel (n, 3)``: start points relative to the nod pivot [m]; ``d_head (n, 3)``: unit
-    directions; ``pivot (3,)`` [m]; ``nod, t (n,)`` [rad, s]; the sensor pose
-    ``p_w = rot (3, 3) p_s + position (3,) + (t - t0) velocity (3,)``.
+    directions; ``pivot (3,)`` [m]; ``cos_nod, sin_nod (n,)``: cosine and sine of each
+    beam's nod (numpy's ``np.cos``/``np.sin``, as geometry.pitch_about_pivot takes them:
+    the same last bits, and vectorised); ``t (n,)`` [s]; the sensor pose
+    ``p_w = rot (3, 3) p_s + position (3,) + (t - t0) velocity (3,)``; ``origin (3,)``,
+    ``scale``: the static embree scene's shift and scale (see :func:`embree_rays`).
     The nod is geometry.pitch_about_pivot (``R_y(nod)`` about the pivot), the pose
-    scene.SensorPose.to_world. Returns ``origins (n, 3), directions (n, 3)`` [m].
+    scene.SensorPose.to_world. Returns ``origins (n, 3) [m], directions (n, 3)`` and the
+    same as embree's float32 ``o32, d32 (n, 3)``.
     """
     n = rel.shape[0]
     o = np.empty((n, 3))
     d = np.empty((n, 3))
+    o32 = np.empty((n, 3), dtype=np.float32)
+    d32 = np.empty((n, 3), dtype=np.float32)
     for i in range(n):
-        c, s = np.cos(nod[i]), np.sin(nod[i])
+        c, s = cos_nod[i], sin_nod[i]
         px = c * rel[i, 0] + s * rel[i, 2] + pivot[0]
         py = rel[i, 1] + pivot[1]
         pz = -s * rel[i, 0] + c * rel[i, 2] + pivot[2]
@@ -166,7 +172,9 @@ def world_rays(rel, d_head, pivot, nod, t, rot, position, velocity, t0):
         for j in range(3):
             o[i, j] = (px * rot[j, 0] + py * rot[j, 1] + pz * rot[j, 2]) + (position[j] + dt * velocity[j])
             d[i, j] = qx * rot[j, 0] + qy * rot[j, 1] + qz * rot[j, 2]
-    return o, d
+        _embree_row(o32, d32, i, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2],
+                    origin, scale)
+    return o, d, o32, d32
 
 
 @_jit
@@ -232,17 +240,21 @@ def plane_distances(o, d, tri, normals, offset):
 
 
 @_jit
-def first_hits(t, tri, face_part, object_id):
-    """Hits of one mesh as the scan's first nearest hits: ``t (n,)`` [m] (inf none),
-    ``tri (n,)`` triangle, ``face_part (T,)`` part of each triangle. Returns
-    ``(dist (n,), obj (n,) object_id or -1, part (n,) or -1)``."""
-    n = t.shape[0]
+def first_hits(o, d, tri, normals, offset, face_part, object_id):
+    """One mesh's hits as the scan's first nearest hits: rays ``o, d (n, 3)`` hit triangle
+    ``tri (n,)`` (-1 none) of planes ``normals (T, 3)``, ``offset (T,)``, triangle ``k``
+    belonging to part ``face_part[k]``. Returns ``(dist (n,) [m] float64, inf none;
+    obj (n,) object_id or -1; part (n,) or -1)``."""
+    n = tri.shape[0]
     dist = np.full(n, np.inf)
     obj = np.full(n, -1, dtype=np.int64)
     part = np.full(n, -1, dtype=np.int64)
     for i in range(n):
-        if np.isfinite(t[i]):
-            dist[i] = t[i]
+        if tri[i] < 0:
+            continue
+        t = _plane_t(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], tri[i], normals, offset)
+        if np.isfinite(t):
+            dist[i] = t
             obj[i] = object_id
             part[i] = face_part[tri[i]]
     return dist, obj, part
@@ -277,17 +289,43 @@ def mover_positions(kind, p0, p1, leg_s, t0, t):
 
 
 @_jit
-def mover_rays(o, d, pos, centre, radius2, origin, scale):
-    """World rays ``o, d (n, 3)`` in a rigidly translating mover's frame (``o - pos``, the
-    mover's position ``pos (n, 3)`` [m] at each ray's time), culled to those meeting its
-    bounding sphere. Returns ``(index (m,), origins in the mover frame (m, 3) float64,
-    o32 (m, 3), d32 (m, 3))``."""
+def mover_rays(o, d, t, kind, p0, p1, leg_s, t0, speed, pos, centre, radius2, origin, scale):
+    """World rays ``o, d (n, 3)`` at times ``t (n,)`` [s] in a rigidly translating mover's
+    frame (``o - position(t)``), culled to those meeting its bounding sphere (``centre
+    (3,)``, squared radius [m^2]). The position is the trajectory ``kind, p0, p1, leg_s, t0``
+    (see ``_position``) moving at most at ``speed`` [m/s], or for ``kind < 0`` given per
+    ray in ``pos (n, 3)`` [m].
+    Returns ``(index (m,), origins in the mover frame (m, 3) float64, o32 (m, 3),
+    d32 (m, 3))`` (embree rays of the mover's scene: ``origin (3,)``, ``scale``).
+
+    A trajectory's positions over the rays' times lie within ``speed (t_max - t_min) / 2``
+    of its position at the middle time, so a ray that misses the sphere grown by that
+    (and 1 um for rounding) about the middle position misses every per-ray sphere: only
+    the rays that meet it get their own position (the trajectory's mod is the costly part).
+    """
     n = o.shape[0]
     idx = np.empty(n, dtype=np.int64)
     om = np.empty((n, 3))
+    p = np.empty(3)
+    pm = np.zeros(3)
+    swept2 = np.inf
+    if kind >= 0 and n > 0:
+        lo, hi = t[0], t[0]
+        for i in range(n):
+            lo, hi = min(lo, t[i]), max(hi, t[i])
+        _position(kind, p0, p1, leg_s, t0, 0.5 * (lo + hi), pm)
+        grow = np.sqrt(radius2) + speed * 0.5 * (hi - lo) + 1e-6
+        swept2 = grow * grow
     m = 0
     for i in range(n):
-        x, y, z = o[i, 0] - pos[i, 0], o[i, 1] - pos[i, 1], o[i, 2] - pos[i, 2]
+        if kind < 0:
+            p[0], p[1], p[2] = pos[i, 0], pos[i, 1], pos[i, 2]
+        elif not _meets_sphere(o[i, 0] - pm[0], o[i, 1] - pm[1], o[i, 2] - pm[2], d[i, 0],
+                               d[i, 1], d[i, 2], centre, swept2):
+            continue
+        else:
+            _position(kind, p0, p1, leg_s, t0, t[i], p)
+        x, y, z = o[i, 0] - p[0], o[i, 1] - p[1], o[i, 2] - p[2]
         if _meets_sphere(x, y, z, d[i, 0], d[i, 1], d[i, 2], centre, radius2):
             idx[m] = i
             om[m, 0], om[m, 1], om[m, 2] = x, y, z

@@ -130,24 +130,35 @@ class ScanTruth:
         return np.where(ok, r, np.nan)
 
 
-def _trajectory_kernel_args(traj) -> tuple[int, np.ndarray, np.ndarray, float, float] | None:
-    """``(kind, p0, p1, leg_s, t0)`` of a scene trajectory for ``_kernel.mover_positions``
-    (None: another kind, whose ``position(t)`` is called)."""
+def _trajectory_kernel_args(traj) -> tuple[int, np.ndarray, np.ndarray, float, float, float] | None:
+    """``(kind, p0, p1, leg_s, t0, speed)`` of a scene trajectory for the mover kernels
+    (``_kernel._position``; speed: its largest speed [m/s]); None: another kind, whose
+    ``position(t)`` is called."""
     z3 = np.zeros(3)
     if isinstance(traj, Fixed):
-        return K.TRAJ_FIXED, np.asarray(traj.position_m, dtype=float), z3, 1.0, 0.0
+        return K.TRAJ_FIXED, np.asarray(traj.position_m, dtype=float), z3, 1.0, 0.0, 0.0
     if isinstance(traj, ConstantVelocity):
-        return (K.TRAJ_CONSTANT_VELOCITY, np.asarray(traj.start_m, dtype=float),
-                np.asarray(traj.velocity_m_s, dtype=float), 1.0, float(traj.t0_s))
+        v = np.asarray(traj.velocity_m_s, dtype=float)
+        return (K.TRAJ_CONSTANT_VELOCITY, np.asarray(traj.start_m, dtype=float), v, 1.0,
+                float(traj.t0_s), float(np.linalg.norm(v)) * (1 + 1e-12))
     if isinstance(traj, BackAndForth):
         return (K.TRAJ_BACK_AND_FORTH, np.asarray(traj.start_m, dtype=float),
-                np.asarray(traj.end_m, dtype=float), float(traj.leg_s), float(traj.t0_s))
+                np.asarray(traj.end_m, dtype=float), float(traj.leg_s), float(traj.t0_s),
+                float(traj.speed_m_s) * (1 + 1e-12))
     return None
 
 
 def _rows(a: np.ndarray) -> np.ndarray:
     """``a`` as a C-ordered float64 ``(n, 3)`` array (what the kernels take)."""
     return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _per_beam(x: np.ndarray | float, n: int) -> np.ndarray:
+    """A scalar or ``(n,)`` array as a C-ordered float64 ``(n,)`` array (no copy if it is one)."""
+    a = np.asarray(x, dtype=np.float64)
+    if a.shape == (n,):
+        return np.ascontiguousarray(a)
+    return np.ascontiguousarray(np.broadcast_to(a, (n,)))
 
 
 class _MeshCaster:
@@ -261,6 +272,10 @@ class SceneSimulator:
         # the sensor pose as the world_rays kernel takes it (scene.SensorPose.to_world)
         self._pose_args = (np.ascontiguousarray(pose.rotation), np.asarray(pose.position_m, dtype=float),
                            np.asarray(pose.velocity_m_s, dtype=float), float(pose.t0_s))
+        # the static scene's embree shift and scale: world_rays prepares its rays too
+        self._static_prep = ((self._static._origin, self._static._scale) if self._static is not None
+                             else (np.zeros(3), 1.0))
+        self._no_pos, self._no_rows = np.zeros(3), np.zeros((0, 3))
         # each mirror's glass as a mesh of its own (two triangles): beams are cast at it in
         # its unturned frame, one embree call per mirror and bounce
         # (culled to the rays that reach the mirror's bounding box: its beam window)
@@ -420,36 +435,49 @@ class SceneSimulator:
         frame ``(n, 3), (n, 3)``: the nod ``R_y(nod)`` about the pivot (conventions.md,
         geometry.pitch_about_pivot), then the sensor pose (scene.SensorPose.to_world), in
         one kernel (``_kernel.world_rays``). ``_rel``: the cached ``p_head - pivot``."""
-        rel = _rows(p_head - self.pivot if _rel is None else _rel)
-        n = len(rel)
-        nod = np.ascontiguousarray(np.broadcast_to(np.asarray(nod_rad, dtype=float), (n,)))
-        t = np.ascontiguousarray(np.broadcast_to(np.asarray(t_s, dtype=float), (n,)))
-        return K.world_rays(rel, _rows(d_head), self.pivot, nod, t, *self._pose_args)
+        return self._to_world(p_head, d_head, nod_rad, t_s, _rel)[:2]
 
-    def cast_world(self, origins: np.ndarray, dirs: np.ndarray, t_s: np.ndarray
+    def _to_world(self, p_head, d_head, nod_rad, t_s, _rel=None):
+        """:meth:`to_world` and the world rays as the static scene's embree rays:
+        ``(o (n, 3), d (n, 3), o32 (n, 3), d32 (n, 3))``."""
+        rel = _rows(p_head - self.pivot if _rel is None else _rel)
+        nod = _per_beam(nod_rad, len(rel))
+        return K.world_rays(rel, _rows(d_head), self.pivot, np.cos(nod), np.sin(nod),
+                            _per_beam(t_s, len(rel)), *self._pose_args, *self._static_prep)
+
+    def cast_world(self, origins: np.ndarray, dirs: np.ndarray, t_s: np.ndarray,
+                   _prepared: tuple[np.ndarray, np.ndarray] | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Nearest hit of world rays ``(n, 3)`` among the static world and the movers at
-        times ``t_s (n,)`` [s].
+        times ``t_s (n,)`` [s] (``_prepared``: the rays already as the static scene's embree
+        rays, from :meth:`_world_rays`).
 
         Returns ``(distance (n,) [m] inf = none, object_id (n,), part (n,))``.
         """
         o, d = _rows(origins), _rows(dirs)
         n = len(o)
         if self._static is not None:
-            t, tri = self._static.cast(o, d)
-            dist, obj, part = K.first_hits(t, tri, self._face_part, HIT_STATIC)
+            st = self._static
+            o32, d32 = (_prepared if _prepared is not None
+                        else K.embree_rays(o, d, st._origin, st._scale))
+            dist, obj, part = K.first_hits(o, d, st.first(o32, d32), st.normals, st._offset,
+                                           self._face_part, HIT_STATIC)
         else:
             dist, obj, part = np.full(n, np.inf), np.full(n, HIT_NONE), np.full(n, -1)
         if not self._movers:
             return dist, obj, part
-        t_s = np.ascontiguousarray(np.broadcast_to(np.asarray(t_s, dtype=float), (n,)))
+        t = _per_beam(t_s, n)
         for k, (mover, caster, args) in enumerate(zip(self.scene.movers, self._movers,
                                                       self._mover_args, strict=True)):
             # a rigidly translating object: cast each ray in the object's frame at its time
-            pos = (K.mover_positions(*args, t_s) if args is not None
-                   else _rows(mover.position(t_s)))
-            idx, om, o32, d32 = K.mover_rays(o, d, pos, caster._centre, caster._radius2,
-                                             caster._origin, caster._scale)
+            if args is None:  # another kind of trajectory: its own position(t)
+                kind, p0, p1, leg_s, t0, speed = -1, self._no_pos, self._no_pos, 1.0, 0.0, 0.0
+                pos = _rows(mover.position(t))
+            else:
+                (kind, p0, p1, leg_s, t0, speed), pos = args, self._no_rows
+            idx, om, o32, d32 = K.mover_rays(o, d, t, kind, p0, p1, leg_s, t0, speed, pos,
+                                             caster._centre, caster._radius2, caster._origin,
+                                             caster._scale)
             if len(idx):
                 K.merge_closer(idx, om, d, caster.first(o32, d32), caster.normals,
                                caster._offset, 1 + k, dist, obj, part)
@@ -478,28 +506,28 @@ class SceneSimulator:
             Noise generator, or a seed for a fresh one.
         """
         rays = self._world_rays(t_scan_s, nod_rad, lift_left, lift_right, steps)
-        dist, obj, part = self.cast_world(rays[5], rays[6], rays[1])
+        dist, obj, part = self.cast_world(rays[5], rays[6], rays[1], rays[9])
         if noise and rng is None:
             rng = np.random.default_rng(seed)
         return self._truth(rays, dist, obj, part, rng, noise)
 
     def _world_rays(self, t_scan_s, nod_rad, lift_left, lift_right, steps):
         """World rays of one scan: (steps, t, nod, head-path offset, first mirror, origins,
-        directions, bounces, alive)."""
+        directions, bounces, alive, (o32, d32) the static scene's embree rays)."""
         whole = steps is None
         steps = self.lidar.steps if whole else np.asarray(steps)
         n = len(steps)
         t = self.beam_times(t_scan_s, steps)
-        nod = np.broadcast_to(np.asarray(nod_rad, dtype=float), (n,)).astype(float)
+        nod = np.array(np.broadcast_to(np.asarray(nod_rad, dtype=float), (n,)), dtype=float)
         o_h, d_h, off, first, bounces, alive, *rel = self._head_rays_cached(
             steps, lift_left, lift_right, whole=True if whole else None)
-        o_w, d_w = self.to_world(o_h, d_h, nod, t, rel[0] if rel else None)
-        return steps, t, nod, off, first, o_w, d_w, bounces, alive
+        o_w, d_w, o32, d32 = self._to_world(o_h, d_h, nod, t, rel[0] if rel else None)
+        return steps, t, nod, off, first, o_w, d_w, bounces, alive, (o32, d32)
 
     def _truth(self, rays, dist, obj, part, rng, noise) -> ScanTruth:
         """ScanTruth of one scan from its rays and their world hits (the noise: one
         ``rng.standard_normal(n)`` draw, as :func:`measure`)."""
-        steps, t, nod, off, first, o_w, d_w, bounces, alive = rays
+        steps, t, nod, off, first, o_w, d_w, bounces, alive, _ = rays
         z = rng.standard_normal(len(dist)) if noise else np.zeros(0)
         near, knee, rel = self.lidar.range_noise
         true_r, r, obj_out, part_out, pts = K.scan_truth(
@@ -550,7 +578,9 @@ class SceneSimulator:
         cut = np.cumsum([len(r[0]) for r in rays])[:-1]
         dist, obj, part = self.cast_world(np.concatenate([r[5] for r in rays]),
                                           np.concatenate([r[6] for r in rays]),
-                                          np.concatenate([r[1] for r in rays]))
+                                          np.concatenate([r[1] for r in rays]),
+                                          (np.concatenate([r[9][0] for r in rays]),
+                                           np.concatenate([r[9][1] for r in rays])))
         out = []
         for i, (r, d, o, p) in enumerate(zip(rays, np.split(dist, cut), np.split(obj, cut),
                                              np.split(part, cut))):
