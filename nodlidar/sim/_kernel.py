@@ -38,6 +38,9 @@ __all__ = [
     "mover_positions",
     "mover_rays",
     "merge_closer",
+    "mirror_rays",
+    "mirror_update",
+    "bounce",
     "measure",
     "scan_truth",
 ]
@@ -353,6 +356,109 @@ def merge_closer(idx, o, d, tri, normals, offset, object_id, dist, obj, part):
             dist[i] = t
             obj[i] = object_id
             part[i] = -1
+
+
+@_jit
+def mirror_rays(o, d, alive, last, mirror, window_centre, window_r2, axis_point, axis, c, s,
+                normal, centre, radius2, origin, scale):
+    """Head-frame rays ``o, d (n, 3)`` that may meet mirror ``mirror``, in its unturned frame.
+
+    The live rays (``alive (n,)``) not just reflected by it (``last (n,) != mirror``) that
+    meet its beam window (a ball about ``window_centre (3,)``, squared radius
+    ``window_r2`` [m^2], holding the glass at every lift angle: turning a ray about the lift
+    axis does not change its distance from the centre) are turned back about the lift axis
+    (``axis_point (3,)``, unit ``axis (3,)``) by the beam's lift angle, whose cosine and sine
+    are ``c, s (n,)`` (geometry.rotate_about_line / rotate_about_axis by ``-angle``), and
+    kept if they meet the glass mesh's bounding sphere (``centre``, ``radius2``). The glass
+    normal ``normal (3,)`` is turned forward by the same angle.
+    Returns ``(index (m,), origins (m, 3), directions (m, 3) in the unturned frame,
+    turned normals (m, 3), o32 (m, 3), d32 (m, 3))`` (embree rays of the glass mesh).
+    """
+    n = o.shape[0]
+    idx = np.empty(n, dtype=np.int64)
+    ol = np.empty((n, 3))
+    dl = np.empty((n, 3))
+    nrm = np.empty((n, 3))
+    px, py, pz = axis_point[0], axis_point[1], axis_point[2]
+    kx, ky, kz = axis[0], axis[1], axis[2]
+    m = 0
+    for i in range(n):
+        if not alive[i] or last[i] == mirror:
+            continue
+        if not _meets_sphere(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2],
+                             window_centre, window_r2):
+            continue
+        x, y, z = _rodrigues(o[i, 0] - px, o[i, 1] - py, o[i, 2] - pz, kx, ky, kz, c[i], -s[i])
+        x, y, z = px + x, py + y, pz + z
+        u, v, w = _rodrigues(d[i, 0], d[i, 1], d[i, 2], kx, ky, kz, c[i], -s[i])
+        if not _meets_sphere(x, y, z, u, v, w, centre, radius2):
+            continue
+        idx[m] = i
+        ol[m, 0], ol[m, 1], ol[m, 2] = x, y, z
+        dl[m, 0], dl[m, 1], dl[m, 2] = u, v, w
+        nrm[m, 0], nrm[m, 1], nrm[m, 2] = _rodrigues(normal[0], normal[1], normal[2], kx, ky,
+                                                     kz, c[i], s[i])
+        m += 1
+    o32 = np.empty((m, 3), dtype=np.float32)
+    d32 = np.empty((m, 3), dtype=np.float32)
+    for j in range(m):
+        _embree_row(o32, d32, j, ol[j, 0], ol[j, 1], ol[j, 2], dl[j, 0], dl[j, 1], dl[j, 2],
+                    origin, scale)
+    return idx[:m].copy(), ol[:m].copy(), dl[:m].copy(), nrm[:m].copy(), o32, d32
+
+
+@_jit
+def mirror_update(idx, ol, dl, nrm, tri, normals, offset, mirror, best_t, best_m, best_nrm):
+    """Mirror ``mirror``'s hits into the nearest mirror hit of each ray, in place: ray
+    ``idx[j]`` (``ol, dl (m, 3)`` in the unturned frame) hit triangle ``tri[j]`` (-1 none)
+    of the glass (``normals (2, 3)``, ``offset (2,)``); a hit ahead (distance > 0) nearer
+    than ``best_t (n,)`` [m] sets ``best_t``, ``best_m`` and the turned normal ``best_nrm``."""
+    for j in range(idx.shape[0]):
+        if tri[j] < 0:
+            continue
+        t = _plane_t(ol[j, 0], ol[j, 1], ol[j, 2], dl[j, 0], dl[j, 1], dl[j, 2], tri[j],
+                     normals, offset)
+        i = idx[j]
+        if t > 0 and t < best_t[i]:
+            best_t[i] = t
+            best_m[i] = mirror
+            best_nrm[i, 0], best_nrm[i, 1], best_nrm[i, 2] = nrm[j, 0], nrm[j, 1], nrm[j, 2]
+
+
+@_jit
+def bounce(o, d, off, first, bounces, alive, last, best_t, best_m, best_nrm, housed):
+    """One mirror bounce of head-frame rays, in place on ``o, d (n, 3)``, path offset
+    ``off (n,)`` [m], ``first, bounces, last (n,)``, ``alive (n,)``.
+
+    Rays ``housed (n,)`` (reflected into the lidar's housing before their mirror) die; a ray
+    with a mirror hit at ``best_t`` [m] (mirror ``best_m``, normal ``best_nrm (n, 3)``) on the
+    glass's back (``d . n >= 0``) is absorbed, on its front it moves to the hit, reflects
+    (geometry.reflect: ``d - 2 (d.n) n``) and counts the bounce. Returns whether any ray
+    had a mirror hit."""
+    any_hit = False
+    for i in range(o.shape[0]):
+        if housed[i]:
+            alive[i] = False
+            continue
+        t = best_t[i]
+        if not np.isfinite(t):
+            continue
+        any_hit = True
+        nx, ny, nz = best_nrm[i, 0], best_nrm[i, 1], best_nrm[i, 2]
+        dn = d[i, 0] * nx + d[i, 1] * ny + d[i, 2] * nz
+        if not dn < 0:
+            alive[i] = False
+            continue
+        o[i, 0], o[i, 1], o[i, 2] = o[i, 0] + t * d[i, 0], o[i, 1] + t * d[i, 1], o[i, 2] + t * d[i, 2]
+        off[i] = off[i] + t
+        d[i, 0] = d[i, 0] - 2.0 * dn * nx
+        d[i, 1] = d[i, 1] - 2.0 * dn * ny
+        d[i, 2] = d[i, 2] - 2.0 * dn * nz
+        if first[i] < 0:
+            first[i] = best_m[i]
+        bounces[i] += 1
+        last[i] = best_m[i]
+    return any_hit
 
 
 @_jit

@@ -44,9 +44,7 @@ from ..geometry import (
     Perturbation,
     directions_from_bearings,
     ray_cylinder_hit,
-    reflect,
     rotate_about_axis,
-    rotate_about_line,
 )
 from ..hinge import LiftAxis, lift_fraction, lifted_patch, side_lift_axes
 from ..lidar import LidarModel
@@ -327,65 +325,45 @@ class SceneSimulator:
         self.lidar.check_step(steps, "steps")
         n = len(steps)
         o = np.zeros((n, 3))
-        d = self._dir0[steps - self.lidar.step_min].copy()
+        d = np.ascontiguousarray(self._dir0[steps - self.lidar.step_min])
         off = np.zeros(n)
         first = np.full(n, -1)
-        bounces = np.zeros(n, dtype=int)
+        bounces = np.zeros(n, dtype=np.int64)
         alive = np.ones(n, dtype=bool)
         last = np.full(n, -1)
-        frac = {"L": np.broadcast_to(np.asarray(lift_left, float), (n,)),
-                "R": np.broadcast_to(np.asarray(lift_right, float), (n,))}
+        # the lift turns each side about its lift axis by f * lift_rad (nodlidar.hinge,
+        # conventions.md): cosine and sine of each beam's angle per side, by numpy as
+        # rotate_about_axis takes them (sin(-a) = -sin(a) exactly: the kernel turns back)
+        trig = {}
+        for side, f in (("L", lift_left), ("R", lift_right)):
+            ax = self.lift_axes.get(side)
+            if ax is not None:
+                ang = _per_beam(ax.angle(f), n)
+                trig[side] = (np.cos(ang), np.sin(ang))
         for _ in range(self.max_bounces):
             best_t = np.full(n, np.inf)
             best_m = np.full(n, -1)
             best_nrm = np.zeros((n, 3))
             for i, p in enumerate(self.patches):
-                # the mirror's beam window: only rays that meet its sphere about the lift
-                # axis (which holds the patch at every lift angle, and which turning a ray
-                # about the axis does not change) are turned and cast
+                # the rays in the mirror's beam window, turned back into the unturned
+                # patch's frame (one kernel), cast at the glass by embree
+                ax, glass = self._axis_of[i], self._mirrors[i]
                 centre, r2 = self._windows[i]
-                idx = K.sphere_candidates(o, d, alive & (last != i), centre, r2)
-                if not len(idx):
-                    continue
-                oi, di = o[idx], d[idx]
-                # the lift turns the side about its lift axis by f * lift_rad
-                # (nodlidar.hinge, conventions.md); intersect the unturned patch with the
-                # ray turned back
-                ax = self._axis_of[i]
-                ang = ax.angle(frac[ax.side][idx])
-                if np.any(ang != 0):
-                    ol = rotate_about_line(oi, ax.point_, ax.direction_, -ang)
-                    dl = rotate_about_axis(di, ax.direction_, -ang)
-                    nrm = rotate_about_axis(p.normal_, ax.direction_, ang)
-                else:
-                    ol, dl, nrm = oi, di, np.broadcast_to(p.normal_, (len(idx), 3))
-                t, _ = self._mirrors[i].cast(ol, dl)
-                t = np.where(t > 0, t, np.inf)
-                closer = t < best_t[idx]
-                sel = idx[closer]
-                best_t[sel] = t[closer]
-                best_m[sel] = i
-                best_nrm[sel] = nrm[closer]
+                c, s = trig[ax.side]
+                idx, ol, dl, nrm, o32, d32 = K.mirror_rays(
+                    o, d, alive, last, i, centre, r2, ax.point_, ax.direction_, c, s,
+                    p.normal_, glass._centre, glass._radius2, glass._origin, glass._scale)
+                if len(idx):
+                    K.mirror_update(idx, ol, dl, nrm, glass.first(o32, d32), glass.normals,
+                                    glass._offset, i, best_t, best_m, best_nrm)
             # a reflected beam that turns back into the lidar's own housing before it
             # meets another mirror is lost there (verify.trace's rule, which the runtime
-            # uses to drop such steps)
+            # uses to drop such steps); the reflecting side faces the lidar (normal towards
+            # it): a hit on the back is absorbed
             housed = self._into_housing(o, d, bounces, alive, best_t)
-            alive &= ~housed
-            best_t = np.where(housed, np.inf, best_t)
-            hit = np.isfinite(best_t)
-            if not np.any(hit):
+            if not K.bounce(o, d, off, first, bounces, alive, last, best_t, best_m, best_nrm,
+                            housed):
                 break
-            # the reflecting side faces the lidar (normal towards it): a hit on the back
-            # (d . n > 0) is absorbed
-            front = np.sum(d * best_nrm, axis=1) < 0
-            alive &= ~(hit & ~front)
-            ref = hit & front
-            o = np.where(ref[:, None], o + np.where(ref, best_t, 0.0)[:, None] * d, o)
-            off = off + np.where(ref, best_t, 0.0)
-            d = np.where(ref[:, None], reflect(d, best_nrm), d)
-            first = np.where(ref & (first < 0), best_m, first)
-            bounces += ref
-            last = np.where(ref, best_m, last)
         alive &= ~self._into_housing(o, d, bounces, alive, np.inf)
         return o, d, off, first, bounces, alive
 
