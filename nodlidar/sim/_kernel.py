@@ -71,6 +71,13 @@ def _rodrigues(x, y, z, kx, ky, kz, c, s):
 
 
 @_jit
+def _reflect(dx, dy, dz, nx, ny, nz):
+    """geometry.reflect on one vector: ``d - 2 (d.n) n`` (n unit)."""
+    dn = dx * nx + dy * ny + dz * nz
+    return dx - 2.0 * dn * nx, dy - 2.0 * dn * ny, dz - 2.0 * dn * nz
+
+
+@_jit
 def _meets_sphere(ox, oy, oz, dx, dy, dz, centre, radius2):
     """The half-line from o along d meets the ball of squared radius ``radius2`` about
     ``centre (3,)``: the centre's squared distance from the line is ``ww - wd^2/dd``; a
@@ -138,9 +145,8 @@ def reflect(d, nrm):
     """geometry.reflect row by row: ``d - 2 (d.n) n``, ``d, nrm (n, 3)`` -> ``(n, 3)``."""
     out = np.empty_like(d)
     for i in range(d.shape[0]):
-        dn = d[i, 0] * nrm[i, 0] + d[i, 1] * nrm[i, 1] + d[i, 2] * nrm[i, 2]
-        for j in range(3):
-            out[i, j] = d[i, j] - 2.0 * dn * nrm[i, j]
+        out[i, 0], out[i, 1], out[i, 2] = _reflect(d[i, 0], d[i, 1], d[i, 2], nrm[i, 0],
+                                                   nrm[i, 1], nrm[i, 2])
     return out
 
 
@@ -451,9 +457,7 @@ def bounce(o, d, off, first, bounces, alive, last, best_t, best_m, best_nrm, hou
             continue
         o[i, 0], o[i, 1], o[i, 2] = o[i, 0] + t * d[i, 0], o[i, 1] + t * d[i, 1], o[i, 2] + t * d[i, 2]
         off[i] = off[i] + t
-        d[i, 0] = d[i, 0] - 2.0 * dn * nx
-        d[i, 1] = d[i, 1] - 2.0 * dn * ny
-        d[i, 2] = d[i, 2] - 2.0 * dn * nz
+        d[i, 0], d[i, 1], d[i, 2] = _reflect(d[i, 0], d[i, 1], d[i, 2], nx, ny, nz)
         if first[i] < 0:
             first[i] = best_m[i]
         bounces[i] += 1
