@@ -207,6 +207,8 @@ class AngleSamples:
         a = np.asarray(a, dtype=float)
         require(t.shape == a.shape and t.ndim == 1, "samples.shape", (t.shape, a.shape),
                 "two (k,) arrays")
+        if t.size < 2 or bool(np.all(t[1:] > t[:-1])):  # already strictly increasing:
+            return cls(t.copy(), a.copy())  # no sort (its own arrays, as after one)
         order = np.argsort(t, kind="stable")
         t, a = t[order], a[order]
         keep = np.concatenate([[True], np.diff(t) > 0]) if t.size else np.zeros(0, bool)
