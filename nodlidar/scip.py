@@ -95,11 +95,17 @@ _STATUS_RE = re.compile(rb"[0-9A-Z]{2}")
 _CHAR_MAX = 0x6F
 _TAG_RE = re.compile(r"[A-Za-z0-9 ._+@]*")
 _TAG_MAX = 16
-_U8_CHAR0 = np.uint8(_CHAR0)
 _BAD_CHAR = "scip data character is invalid; allowed: '0'..'o' (0x30-0x6F)"
-#: place values of the 6-bit digits of a 2/3/4-character group, for one matrix product
-_MAX = np.maximum.reduce  # the ufunc itself: ndarray.max() adds Python-level overhead
-_DIGIT_WEIGHTS = {n: (64.0 ** np.arange(n - 1, -1, -1)).astype(np.float32) for n in (2, 3, 4)}
+#: the 64 valid data characters: ``bytes.translate(None, _DATA_CHARS)`` leaves the others
+_DATA_CHARS = bytes(range(_CHAR0, _CHAR_MAX + 1))
+#: n_chars -> (place values of a group's characters, their sum times 0x30): a group's
+#: value is its raw character codes times the place values, less that offset - one matrix
+#: product, exact in float32 up to 3 characters (0x6F * 4161 < 2**24), float64 for 4
+_GROUP_WEIGHTS = {
+    n: ((64.0 ** np.arange(n - 1, -1, -1)).astype(np.float32 if n < 4 else np.float64),
+        _CHAR0 * (64 ** n - 1) // 63)
+    for n in (1, 2, 3, 4)
+}
 
 
 class ScipChecksumWarning(UserWarning):
@@ -285,15 +291,30 @@ def decode_values(data: bytes | bytearray | memoryview | np.ndarray, n_chars: in
 
 def _decode_digits(a: np.ndarray, n_chars: int) -> np.ndarray:
     """:func:`decode_values` of a uint8 array whose size is a multiple of ``n_chars``."""
-    # 6-bit digits; a character below '0' wraps round to >= 0xD0, so one maximum checks
-    # both ends of '0'..'o'
-    g = a - _U8_CHAR0
-    if g.size and _MAX(g, axis=None) > 0x3F:
+    # every character in '0'..'o': deleting those leaves nothing (one C pass over bytes)
+    if a.tobytes().translate(None, _DATA_CHARS):
         raise ProtocolError(_BAD_CHAR)
-    if n_chars == 1:
-        return g.astype(np.int32).ravel()
-    # one matrix-vector product: exact in float32, every partial sum is an integer < 2**24
-    return (g.reshape(-1, n_chars) @ _DIGIT_WEIGHTS[n_chars]).astype(np.int32)
+    return _group_values(a, n_chars)
+
+
+def _group_values(chars: np.ndarray, n_chars: int) -> np.ndarray:
+    """Values of groups of valid characters (not checked here).
+
+    Parameters
+    ----------
+    chars : numpy.ndarray of uint8, shape (m * n_chars,) or (m, n_chars)
+        Character codes in ``'0'..'o'``, each group's most significant first.
+    n_chars : int
+        Characters per group (1-4).
+
+    Returns
+    -------
+    numpy.ndarray, shape (m,), int32
+    """
+    w, offset = _GROUP_WEIGHTS[n_chars]
+    v = (chars.reshape(-1, n_chars) @ w).astype(np.int32)
+    v -= offset  # the 0x30 of each character, times its place value
+    return v
 
 
 def _decode_int(chars: bytes) -> int:
@@ -386,6 +407,48 @@ def _device_layout(buf: bytes, start: int, end: int) -> _Layout | None:
     if (buf[end - 1] != 0x0A or buf.count(LF, start, end) != lay.n_lines
             or buf[start + first:end:DATA_LINE_CHARS + 2] != lay.lf_stride):
         return None
+    return lay
+
+
+class _ScanLayout(NamedTuple):
+    """Where everything lies in the data block of a scan message as a device sends it:
+    the timestamp line (4 characters + sum), then lines of DATA_LINE_CHARS + sum + LF, the
+    last one shorter; the block runs from the timestamp to the LF ending the last line."""
+
+    #: (2 * n_lines,) intp: the ``np.add.reduceat`` boundaries of :class:`_Layout`
+    bounds: np.ndarray
+    #: (n_values, n_chars) intp: positions of each value's characters in the block
+    data: np.ndarray
+    #: what ``block[5::DATA_LINE_CHARS + 2]`` is (the LFs on the line grid)
+    lf_stride: bytes
+    #: what ``block.translate(None, _DATA_CHARS)`` is: one LF per line, nothing else
+    lfs: bytes
+    n_values: int
+
+
+#: (block length, n_chars) -> the device's scan layout, or None if no device sends that
+_SCAN_LAYOUTS: dict[tuple[int, int], _ScanLayout | None] = {}
+
+
+def _scan_layout(size: int, n_chars: int) -> _ScanLayout | None:
+    """The (cached) :class:`_ScanLayout` of a ``size``-byte block of ``n_chars`` values."""
+    key = (size, n_chars)
+    if key in _SCAN_LAYOUTS:
+        return _SCAN_LAYOUTS[key]
+    lay = None
+    w = DATA_LINE_CHARS + 2
+    lf = list(range(5, size, w))  # the timestamp line's LF, then every full line's
+    if lf and lf[-1] != size - 1 and size - 1 - lf[-1] >= 3:
+        lf.append(size - 1)  # a shorter last line, at least one character + sum
+    if lf and lf[-1] == size - 1 and len(lf) >= 2:
+        base = _layout_from_lf(np.array(lf, dtype=np.intp))
+        n_values, rest = divmod(base.content.size - 4, n_chars)
+        if not rest:
+            lay = _ScanLayout(base.bounds, base.content[4:].reshape(n_values, n_chars),
+                              LF * len(range(5, size, w)), LF * len(lf), n_values)
+    if len(_SCAN_LAYOUTS) >= _DEVICE_LAYOUTS_MAX:
+        _SCAN_LAYOUTS.clear()  # bounded whatever arrives; a device uses one or two
+    _SCAN_LAYOUTS[key] = lay
     return lay
 
 
@@ -1201,7 +1264,10 @@ def decode_scan(reply: ScipReply | bytes) -> ScanFrame:
         does not match the echoed start/end/cluster.
     """
     if not isinstance(reply, ScipReply):
-        # straight from the bytes: no body tuple, no ScipReply (the hot path of a driver)
+        frame = _device_scan(reply)
+        if frame is not None:
+            return frame
+        # any other shape, or an error: no body tuple, no ScipReply, the checks in order
         _, buf, n, at, echo, _, status, _, payload = _parse_parts(reply)
         if payload is not None:
             end = buf.find(LF, at, n) if at >= 0 else -1
@@ -1211,6 +1277,65 @@ def decode_scan(reply: ScipReply | bytes) -> ScanFrame:
     body = reply.body
     return _scan_frame(reply.echo, reply.status, bool(body), body[0] if body else b"",
                        reply.payload, body, None)
+
+
+#: the status lines a scan message can have: ``00`` (GD/GS) and ``99`` (MD/MS), with sums
+_SCAN_STATUS_LINES = {b"00P": "00", b"99b": "99"}
+_LINE = DATA_LINE_CHARS + 2
+
+
+@functools.lru_cache(maxsize=256)
+def _scan_echo(echo: bytes) -> tuple[DistanceRequest, int, int] | None:
+    """``(request, n_chars, n_values)`` of a valid scan echo line, else None (cached: a
+    device echoes the same few lines again and again)."""
+    if not _PRINTABLE_RE.fullmatch(echo):
+        return None
+    try:
+        req = _parse_request_cached(echo.decode("ascii"))
+    except (ScipRequestError, ParameterError):
+        return None
+    return req, req.n_chars, req.n_values
+
+
+def _device_scan(message: bytes) -> ScanFrame | None:
+    """:func:`decode_scan` of a valid scan message as a device sends it (64-character data
+    lines, ``LF LF`` at the end), or None for anything else - then the general path of
+    :func:`decode_scan` decodes it or raises its error, so errors are found in one order.
+
+    Every checksum is verified (status by the table of the two valid lines, timestamp and
+    data lines by one ``np.add.reduceat``), every LF checked to be where the layout has
+    one and every other byte of the block to be a data character (one ``bytes.translate``
+    deleting those must leave exactly the LFs). Then one gather of the values' characters,
+    one matrix product, and the timestamp by a 4-character expression.
+    """
+    msg = message if type(message) is bytes else bytes(message)
+    n = len(msg) - 1  # the block ends with the first LF of the final LF LF, at msg[n - 1]
+    i = msg.find(LF, 0, n)  # end of the echo
+    status = _SCAN_STATUS_LINES.get(msg[i + 1:i + 4]) if i >= 2 else None
+    if status is None or msg[i + 4:i + 5] != LF or msg[n - 1:] != b"\n\n":
+        return None
+    scan = _scan_echo(msg[:i])
+    if scan is None:
+        return None
+    req, n_chars, n_values = scan
+    start = i + 5  # the timestamp's first character
+    lay = _scan_layout(n - start, n_chars)
+    if (lay is None or lay.n_values != n_values
+            or msg[start + 5:n:_LINE] != lay.lf_stride
+            or msg[start:n].translate(None, _DATA_CHARS) != lay.lfs):
+        return None
+    a = np.frombuffer(msg, np.uint8, n - start, start)
+    # each line's content sum and its sum char + LF, mod 256 (the sum is mod 64), compared
+    # as bytes through the table of the wanted sum + LF (as _verify_block)
+    r = np.add.reduceat(a, lay.bounds, dtype=np.uint8).tobytes()
+    if r[0::2].translate(_SUM_LF_TABLE) != r[1::2]:
+        return None
+    # 4 characters, checked above: a plain expression, not the array path
+    ts = ((msg[start] - _CHAR0) << 18 | (msg[start + 1] - _CHAR0) << 12
+          | (msg[start + 2] - _CHAR0) << 6 | (msg[start + 3] - _CHAR0))
+    ranges = _group_values(a.take(lay.data), n_chars)
+    ranges.setflags(write=False)
+    return ScanFrame(request=req, status=status, timestamp_ms=ts, ranges_mm=ranges)
 
 
 def _scan_frame(echo: str, status: str, has_body: bool, ts_line: bytes,

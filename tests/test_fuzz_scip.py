@@ -215,6 +215,48 @@ def test_mutated_messages_raise_only_typed_errors(msg, edits):
     assert framer.pending <= framer.max_buffer
 
 
+def _general_outcome(msg: bytes) -> tuple:
+    """decode_scan of the parsed reply: the general path (no device-layout shortcut)."""
+    try:
+        f = scip.decode_scan(scip.parse_reply(msg))
+    except NodlidarError as e:
+        return type(e).__name__, str(e)
+    return f.request, f.status, f.timestamp_ms, f.ranges_mm.tolist(), f.ranges_mm.dtype
+
+
+def _frame_outcome(f: scip.ScanFrame) -> tuple:
+    return f.request, f.status, f.timestamp_ms, f.ranges_mm.tolist(), f.ranges_mm.dtype
+
+
+@FUZZ
+@given(scan_messages(), st.lists(st.tuples(st.integers(0, 10_000), st.integers(1, 255),
+                                           st.booleans()), max_size=4))
+def test_device_fast_path_agrees_with_the_general_path(msg, edits):
+    """decode_scan(bytes) takes a shortcut for messages as a device sends them
+    (scip._device_scan, issue 16): it must take it for every valid scan message, and on
+    changed bytes - each by +d, some with the next byte by -d so that a line's sum holds -
+    either decline (None) or return exactly what the general path returns; decode_scan of
+    the bytes always returns or raises what the general path does."""
+    fast = scip._device_scan(msg)
+    assert fast is not None and _frame_outcome(fast) == _general_outcome(msg)
+    b = bytearray(msg)
+    for pos, d, paired in edits:
+        pos %= len(b)
+        b[pos] = (b[pos] + d) % 256
+        if paired and pos + 1 < len(b):
+            b[pos + 1] = (b[pos + 1] - d) % 256
+    bad = bytes(b)
+    want = _general_outcome(bad)
+    fast = scip._device_scan(bad)
+    if fast is not None:
+        assert _frame_outcome(fast) == want
+    try:
+        got = _frame_outcome(scip.decode_scan(bad))
+    except NodlidarError as e:
+        got = type(e).__name__, str(e)
+    assert got == want
+
+
 # --- the framer ------------------------------------------------------------------------
 @FUZZ
 @given(st.lists(st.one_of(valid_messages, any_bytes), max_size=12), st.lists(valid_messages,

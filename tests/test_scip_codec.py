@@ -865,6 +865,41 @@ def test_decode_regression_fixture():
     assert n_ok >= 20 and n_err >= 200  # both outcomes are exercised
 
 
+def test_device_fast_path_taken_and_equal_to_the_general_path():
+    """decode_scan(bytes) decodes a device-shaped message by scip._device_scan (the
+    benchmarked path) - the captures and every valid synthetic frame with 64-character
+    lines - and on every fixture case that shortcut either declines or returns what the
+    general path (decode_scan of the parsed reply) returns."""
+    import base64
+    import hashlib
+    import json
+
+    saved = json.loads(REGRESSION.read_text())
+    bases = {k: base64.b64decode(v) for k, v in saved["bases"].items()}
+    n_fast = 0
+    for case in saved["cases"]:
+        raw = _apply_edits(bases[case["base"]], case["edits"])
+        fast = scip._device_scan(raw)
+        via = case["outcome"].get("via_reply")
+        general = case["outcome"]["bytes"] if via == "=bytes" else via
+        if fast is None:
+            continue
+        n_fast += 1
+        r = fast.ranges_mm
+        assert general[:6] == ["ok", fast.echo, fast.status, fast.timestamp_ms, str(r.dtype),
+                               bool(r.flags.writeable)], case["name"]
+        # the saved ranges: a list for the bases, else the first 64 bits of their sha256
+        h = hashlib.sha256(r.tobytes()).hexdigest()[:16]
+        assert general[6] == (r.tolist() if not case["edits"] else h), case["name"]
+    taken = {"capture_a", "capture_b", "gd682", "gs682", "md682_rem2", "ms682_rem0",
+             "gd_cluster3_tag", "gd_one_value", "gd_full_lines", "gs_one_full_line",
+             "gd1081_utm", "gd_extremes", "gs_extremes"}
+    for k in taken:
+        assert scip._device_scan(bases[k]) is not None, k
+    assert scip._device_scan(bases["gd_width65"]) is None  # not the device's lines
+    assert n_fast >= len(taken) + 100  # the +1/-1 pairs that keep a sum are decoded too
+
+
 if __name__ == "__main__":
     import json
     import sys
