@@ -31,10 +31,7 @@ __all__ = [
     "reflect",
     "world_rays",
     "embree_rays",
-    "sphere_candidates",
-    "cull_embree_rays",
     "first_hits",
-    "plane_distances",
     "mover_positions",
     "mover_rays",
     "merge_closer",
@@ -197,55 +194,6 @@ def embree_rays(o, d, origin, scale):
         _embree_row(o32, d32, i, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2],
                     origin, scale)
     return o32, d32
-
-
-@_jit
-def sphere_candidates(o, d, keep, centre, radius2):
-    """Indices (m,) int64 of the rays ``o, d (n, 3)`` with ``keep (n,)`` true whose
-    half-line meets the ball about ``centre (3,)`` of squared radius ``radius2`` [m^2]."""
-    n = o.shape[0]
-    idx = np.empty(n, dtype=np.int64)
-    m = 0
-    for i in range(n):
-        if keep[i] and _meets_sphere(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2],
-                                     centre, radius2):
-            idx[m] = i
-            m += 1
-    return idx[:m].copy()
-
-
-@_jit
-def cull_embree_rays(o, d, centre, radius2, origin, scale):
-    """The rays of ``o, d (n, 3)`` that meet the bounding sphere (``centre (3,)``, squared
-    radius [m^2]), as embree rays (see :func:`embree_rays`).
-    Returns ``(index (m,) int64, o32 (m, 3), d32 (m, 3))``."""
-    n = o.shape[0]
-    idx = np.empty(n, dtype=np.int64)
-    m = 0
-    for i in range(n):
-        if _meets_sphere(o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], centre, radius2):
-            idx[m] = i
-            m += 1
-    o32 = np.empty((m, 3), dtype=np.float32)
-    d32 = np.empty((m, 3), dtype=np.float32)
-    for j in range(m):
-        i = idx[j]
-        _embree_row(o32, d32, j, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2],
-                    origin, scale)
-    return idx[:m].copy(), o32, d32
-
-
-@_jit
-def plane_distances(o, d, tri, normals, offset):
-    """float64 distance [m] along ``d`` from ``o (m, 3)`` to the plane of triangle ``tri (m,)``
-    (``normals (T, 3)``, ``offset (T,)``: ``x . n = offset``); inf where ``tri < 0``."""
-    m = tri.shape[0]
-    t = np.full(m, np.inf)
-    for j in range(m):
-        if tri[j] >= 0:
-            t[j] = _plane_t(o[j, 0], o[j, 1], o[j, 2], d[j, 0], d[j, 1], d[j, 2], tri[j],
-                            normals, offset)
-    return t
 
 
 @_jit

@@ -19,6 +19,9 @@ Independent of :class:`~nodlidar.beams.BeamModel` on purpose (the two check each
    call against the mover's mesh with each ray moved into the mover's frame at its own time
    (rigid translation: origin - position(t_i)). The distance to the triangle found is
    recomputed in float64 from its plane (embree works in float32).
+   The per-beam work around the embree calls (ray generation and turning, nod and pose,
+   culls, distances, truth, noise) runs in compiled loops (:mod:`._kernel`, numba): the
+   formulas of :mod:`nodlidar.geometry` and :mod:`.scene`, operation for operation.
 5. Range = total path length (lidar -> mirror -> object), as the device measures it.
 
 Assumptions: nothing in the scene lies between the lidar and its mirrors (within the
@@ -160,21 +163,22 @@ def _per_beam(x: np.ndarray | float, n: int) -> np.ndarray:
 
 
 class _MeshCaster:
-    """One mesh with an embree intersector; distances recomputed in float64.
+    """One mesh with an embree intersector and what the kernels need of it.
 
-    ``cull=True`` first drops the rays that miss the mesh's bounding sphere (the sphere
-    about the bounding box's centre through its corners, in float64, 1 mm larger: far above
-    embree's float32 error, so no ray that embree would report is dropped): a mover or a
-    mirror is seen by few of the rays. Each ray is
-    cast on its own by embree, so casting a subset gives the same triangle per ray.
-    The rays are prepared for embree exactly as trimesh's ``intersects_first`` prepares
-    them (``_kernel.embree_rays``), and the embree scene is called directly (skipping
-    trimesh's per-call mesh-hash lookup).
+    The kernels prepare the rays for embree exactly as trimesh's ``intersects_first``
+    prepares them (``_kernel.embree_rays``: the same float32 rays, so the same triangles),
+    :meth:`first` calls the embree scene directly (skipping trimesh's per-call mesh-hash
+    lookup), and the kernels recompute each distance in float64 from the triangle's plane
+    (``normals``, ``_offset``). Movers and mirrors are cast only with the rays that meet
+    the mesh's bounding sphere (``_centre``, ``_radius2``: about the bounding box's centre
+    through its corners, in float64, 1 mm larger: far above embree's float32 error, so no
+    ray that embree would report is dropped); embree casts each ray on its own, so a subset
+    gets the same triangle per ray.
     """
 
     _MARGIN_M = 1e-3
 
-    def __init__(self, mesh, *, cull: bool = False):
+    def __init__(self, mesh):
         from trimesh.ray.ray_pyembree import RayMeshIntersector
 
         self.mesh = mesh
@@ -187,7 +191,6 @@ class _MeshCaster:
         self.v0 = tri[:, 0]
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         self.normals = np.ascontiguousarray(n / np.linalg.norm(n, axis=1, keepdims=True))
-        self.cull = bool(cull)
         self._offset = np.einsum("ij,ij->i", self.v0, self.normals)  # plane: x . n = offset
         lo, hi = np.asarray(mesh.bounds, dtype=float)
         self._centre = (lo + hi) / 2
@@ -198,23 +201,6 @@ class _MeshCaster:
         if not len(o32):
             return np.zeros(0, dtype=np.int64)
         return np.asarray(self._run(o32, d32), dtype=np.int64)
-
-    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest hit of each ray ``(n, 3)``: ``(distance (n,) [m], inf if none; triangle
-        (n,), -1)``."""
-        o, d = _rows(origins), _rows(dirs)
-        if self.cull:
-            idx, o32, d32 = K.cull_embree_rays(o, d, self._centre, self._radius2,
-                                               self._origin, self._scale)
-            tri = np.full(len(o), -1, dtype=np.int64)
-            t = np.full(len(o), np.inf)
-            if len(idx):
-                tri[idx] = ti = self.first(o32, d32)
-                t[idx] = K.plane_distances(o[idx], d[idx], ti, self.normals, self._offset)
-            return t, tri
-        o32, d32 = K.embree_rays(o, d, self._origin, self._scale)
-        tri = self.first(o32, d32)
-        return K.plane_distances(o, d, tri, self.normals, self._offset), tri
 
 
 class SceneSimulator:
@@ -264,7 +250,7 @@ class SceneSimulator:
         else:
             self._face_part = np.zeros(0, dtype=int)
             self._static = None
-        self._movers = [_MeshCaster(m.mesh(), cull=True) for m in self.scene.movers]
+        self._movers = [_MeshCaster(m.mesh()) for m in self.scene.movers]
         self._mover_args = [_trajectory_kernel_args(m.trajectory) for m in self.scene.movers]
         pose = self.scene.sensor
         # the sensor pose as the world_rays kernel takes it (scene.SensorPose.to_world)
@@ -276,9 +262,9 @@ class SceneSimulator:
         self._no_pos, self._no_rows = np.zeros(3), np.zeros((0, 3))
         # each mirror's glass as a mesh of its own (two triangles): beams are cast at it in
         # its unturned frame, one embree call per mirror and bounce
-        # (culled to the rays that reach the mirror's bounding box: its beam window)
+        # (culled to the rays that reach its beam window, then its bounding sphere)
         self._mirrors = [_MeshCaster(trimesh.Trimesh(p.corners(), [[0, 1, 2], [0, 2, 3]],
-                                                     process=False), cull=True)
+                                                     process=False))
                          for p in self.patches]
         self._head_cache: dict[tuple[float, float], tuple] = {}
         # each mirror's beam window: a sphere centred on its side's lift axis through its
