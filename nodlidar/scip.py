@@ -428,6 +428,7 @@ class _ScanLayout(NamedTuple):
 
 #: (block length, n_chars) -> the device's scan layout, or None if no device sends that
 _SCAN_LAYOUTS: dict[tuple[int, int], _ScanLayout | None] = {}
+_UNSEEN = _ScanLayout(np.zeros(0, np.intp), np.zeros((0, 0), np.intp), b"", b"", -1)
 
 
 def _scan_layout(size: int, n_chars: int) -> _ScanLayout | None:
@@ -1319,7 +1320,9 @@ def _device_scan(message: bytes) -> ScanFrame | None:
         return None
     req, n_chars, n_values = scan
     start = i + 5  # the timestamp's first character
-    lay = _scan_layout(n - start, n_chars)
+    lay = _SCAN_LAYOUTS.get((n - start, n_chars), _UNSEEN)
+    if lay is _UNSEEN:
+        lay = _scan_layout(n - start, n_chars)
     if (lay is None or lay.n_values != n_values
             or msg[start + 5:n:_LINE] != lay.lf_stride
             or msg[start:n].translate(None, _DATA_CHARS) != lay.lfs):
@@ -1335,7 +1338,7 @@ def _device_scan(message: bytes) -> ScanFrame | None:
           | (msg[start + 2] - _CHAR0) << 6 | (msg[start + 3] - _CHAR0))
     ranges = _group_values(a.take(lay.data), n_chars)
     ranges.setflags(write=False)
-    return ScanFrame(request=req, status=status, timestamp_ms=ts, ranges_mm=ranges)
+    return ScanFrame(req, status, ts, ranges)
 
 
 def _scan_frame(echo: str, status: str, has_body: bool, ts_line: bytes,

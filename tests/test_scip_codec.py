@@ -634,7 +634,7 @@ def test_decode_scan_any_line_width(width):
         assert np.array_equal(x.ranges_mm, v) and not x.ranges_mm.flags.writeable
 
 
-@pytest.mark.parametrize("n_chars", [2, 3, 4])
+@pytest.mark.parametrize("n_chars", [1, 2, 3, 4])
 def test_decode_values_every_character(n_chars):
     """Each of the 256 byte values in each position of a group: the 64 valid characters
     decode to their place value (checked against int arithmetic), the others are refused
@@ -652,7 +652,7 @@ def test_decode_values_every_character(n_chars):
                     scip.decode_values(bytes(group), n_chars)
                 with pytest.raises(ProtocolError, match="data character is invalid"):
                     scip.decode_value(bytes(group))
-    top = 64 ** n_chars - 1  # the largest value: exact through the float32 product
+    top = 64 ** n_chars - 1  # the largest value: exact through the product of raw codes
     assert scip.decode_values(b"o" * n_chars, n_chars).tolist() == [top]
 
 
