@@ -312,7 +312,7 @@ def _group_values(chars: np.ndarray, n_chars: int) -> np.ndarray:
     numpy.ndarray, shape (m,), int32
     """
     w, offset = _GROUP_WEIGHTS[n_chars]
-    v = (chars.reshape(-1, n_chars) @ w).astype(np.int32)
+    v = chars.reshape(-1, n_chars).dot(w).astype(np.int32)  # .dot: less overhead than @
     v -= offset  # the 0x30 of each character, times its place value
     return v
 
