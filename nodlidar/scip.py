@@ -288,6 +288,16 @@ def decode_values(data: bytes | bytearray | memoryview | np.ndarray, n_chars: in
         a = a.astype(np.uint8)
     return _decode_digits(a, n_chars)
 
+#: n_chars -> the place values of :data:`_GROUP_WEIGHTS` and a weight for one LF (0x0A)
+#: that stands for the offset: 10 times it is -offset + f with 0 < f < 1, so the product
+#: of a group's characters and an LF is the value + f, exactly (every partial sum is a
+#: multiple of 1/32 below 2**19 in float32), and the cast to int32 (which truncates) gives
+#: the value: no subtraction (tests/test_scip_codec.py checks every group up to 3 chars)
+_LF_WEIGHTS = {
+    n: np.append(w, -round((off - 0.5) / 10 * 64) / 64).astype(w.dtype)
+    for n, (w, off) in _GROUP_WEIGHTS.items()
+}
+
 
 def _decode_digits(a: np.ndarray, n_chars: int) -> np.ndarray:
     """:func:`decode_values` of a uint8 array whose size is a multiple of ``n_chars``."""
@@ -417,7 +427,8 @@ class _ScanLayout(NamedTuple):
 
     #: (2 * n_lines,) intp: the ``np.add.reduceat`` boundaries of :class:`_Layout`
     bounds: np.ndarray
-    #: (n_values, n_chars) intp: positions of each value's characters in the block
+    #: (n_values, n_chars + 1) intp: positions of each value's characters in the block,
+    #: then of the timestamp line's LF (for the offset, see _LF_WEIGHTS)
     data: np.ndarray
     #: what ``block[5::DATA_LINE_CHARS + 2]`` is (the LFs on the line grid)
     lf_stride: bytes
@@ -445,8 +456,10 @@ def _scan_layout(size: int, n_chars: int) -> _ScanLayout | None:
         base = _layout_from_lf(np.array(lf, dtype=np.intp))
         n_values, rest = divmod(base.content.size - 4, n_chars)
         if not rest:
-            lay = _ScanLayout(base.bounds, base.content[4:].reshape(n_values, n_chars),
-                              LF * len(range(5, size, w)), LF * len(lf), n_values)
+            data = np.full((n_values, n_chars + 1), 5, dtype=np.intp)  # 5: an LF
+            data[:, :n_chars] = base.content[4:].reshape(n_values, n_chars)
+            lay = _ScanLayout(base.bounds, data, LF * len(range(5, size, w)), LF * len(lf),
+                              n_values)
     if len(_SCAN_LAYOUTS) >= _DEVICE_LAYOUTS_MAX:
         _SCAN_LAYOUTS.clear()  # bounded whatever arrives; a device uses one or two
     _SCAN_LAYOUTS[key] = lay
@@ -1336,7 +1349,7 @@ def _device_scan(message: bytes) -> ScanFrame | None:
     # 4 characters, checked above: a plain expression, not the array path
     ts = ((msg[start] - _CHAR0) << 18 | (msg[start + 1] - _CHAR0) << 12
           | (msg[start + 2] - _CHAR0) << 6 | (msg[start + 3] - _CHAR0))
-    ranges = _group_values(a.take(lay.data), n_chars)
+    ranges = a.take(lay.data).dot(_LF_WEIGHTS[n_chars]).astype(np.int32)
     ranges.setflags(write=False)
     return ScanFrame(req, status, ts, ranges)
 

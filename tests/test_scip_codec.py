@@ -656,6 +656,35 @@ def test_decode_values_every_character(n_chars):
     assert scip.decode_values(b"o" * n_chars, n_chars).tolist() == [top]
 
 
+@pytest.mark.parametrize("n_chars", [1, 2, 3, 4])
+def test_lf_weights_exact_for_every_group(n_chars):
+    """The device path's product - a group's raw character codes and one LF (0x0A) times
+    scip._LF_WEIGHTS, cast to int32 - is the group's value by integer arithmetic, exactly:
+    every group of 1-3 characters, and for 4 characters each character in each position
+    (the others '0' or 'o') and 100 000 random groups. The LF's share is the offset less a
+    fraction in (0, 1), which the truncating cast drops."""
+    w = scip._LF_WEIGHTS[n_chars]
+    w_ref, offset = scip._GROUP_WEIGHTS[n_chars]
+    assert 0 < offset + 10 * float(w[-1]) < 1 and w.dtype == w_ref.dtype
+    if n_chars <= 3:
+        g = np.indices((64,) * n_chars).reshape(n_chars, -1).T
+    else:
+        rng = np.random.default_rng(4)
+        g = [rng.integers(0, 64, (100_000, 4))]
+        for pos in range(4):
+            for fill in (0, 63):
+                x = np.full((64, 4), fill)
+                x[:, pos] = np.arange(64)
+                g.append(x)
+        g = np.concatenate(g)
+    chars = np.empty((len(g), n_chars + 1), dtype=np.uint8)
+    chars[:, :n_chars] = g + 0x30
+    chars[:, n_chars] = 0x0A
+    want = (g.astype(np.int64) << (6 * np.arange(n_chars - 1, -1, -1))).sum(axis=1)
+    got = chars.dot(w).astype(np.int32)
+    np.testing.assert_array_equal(got, want)  # integers: exact
+
+
 def test_decode_scan_bytes_and_reply_agree_on_corruptions():
     """decode_scan(bytes) takes its own path (no ScipReply): on the captures and on random
     corruptions of them it returns or raises exactly what decode_scan(parse_reply(...))
