@@ -440,3 +440,30 @@ def test_numba_loaded_by_assembling_only():
                        timeout=120, cwd=ROOT)
     assert p.returncode == 0, p.stderr[-2000:]
     assert p.stdout.split() == ["False", "True"]
+
+
+def test_kernel_interpolation_is_interpolate_angle():
+    """AngleSamples.at runs the kernel's per-beam interpolation: against
+    servo_angles.interpolate_angle (numpy's np.interp plus the end-segment lines) in all
+    three modes, on unsorted queries inside, outside, on the sample times and NaN. The
+    same formula: 1e-12 rad on angles of ~1 rad is rounding only."""
+    from nodlidar.runtime.assembly import AngleSamples
+    from nodlidar.runtime.servo_angles import interpolate_angle
+
+    rng = np.random.default_rng(8)
+    ts = np.cumsum(rng.uniform(0.001, 0.02, 200))
+    a = np.cumsum(rng.normal(0, 0.05, 200))
+    q = np.concatenate([rng.uniform(ts[0] - 0.3, ts[-1] + 0.3, 3000), ts, [np.nan]])
+    rng.shuffle(q)
+    smp = AngleSamples.of((ts, a))
+    for mode in ("nan", "clamp", "extrapolate"):
+        want = interpolate_angle(ts, a, q, outside=mode)
+        got = smp.at(q, mode)
+        assert_array_equal(np.isnan(got), np.isnan(want), err_msg=mode)
+        assert_allclose(got, want, atol=1e-12, rtol=0, err_msg=mode)
+    assert_array_equal(smp.at(q[:3000].reshape(3, 1000)), smp.at(q[:3000]).reshape(3, 1000))
+    one = AngleSamples.of(([1.0], [0.2]))
+    assert_allclose(one.at([0.5, 1.0, 1.5], "nan"), [np.nan, 0.2, np.nan])
+    assert_allclose(one.at([0.5, 1.0, 1.5], "clamp"), [0.2, 0.2, 0.2])
+    with pytest.raises(ParameterError, match="samples"):
+        one.at([1.0], "extrapolate")

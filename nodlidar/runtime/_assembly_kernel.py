@@ -31,7 +31,7 @@ import numba
 import numpy as np
 
 __all__ = ["ROW", "SEG", "cos_sin", "rodrigues", "assemble_points", "apply_poses",
-           "apply_transforms"]
+           "apply_transforms", "interp_angles", "mirror_states"]
 
 _jit = numba.njit(cache=True, nogil=True)
 # the per-point helpers are inlined into the kernels at numba's IR level: as separate
@@ -134,6 +134,18 @@ def _interp(ts: np.ndarray, a: np.ndarray, q: float, mode: int, j: int
 
 
 @_inline
+def _state(angle: float, deployed: float, lifted: float, tol: float) -> int:
+    """DEPLOYED / LIFTED / BETWEEN of a lift-servo angle [rad]: within ``tol`` [rad] of
+    an end; the lifted band wins where both hold; NaN (unknown) is BETWEEN."""
+    state = BETWEEN
+    if abs(angle - deployed) <= tol:
+        state = DEPLOYED
+    if abs(angle - lifted) <= tol:
+        state = LIFTED
+    return state
+
+
+@_inline
 def _pose(ts: np.ndarray, seg: np.ndarray, t: float, x: float, y: float, z: float,
           j: int) -> tuple[float, float, float, int]:
     """Robot-frame point ``(x, y, z)`` [m] at time ``t`` [s] -> world frame by the pose
@@ -231,12 +243,7 @@ def assemble_points(steps, ranges, scan, scan_time, step_min, step_dt, rows, row
                     lift, j_lift0 = _interp(lift_t0, lift_a0, t, NAN, j_lift0)
                 else:
                     lift, j_lift1 = _interp(lift_t1, lift_a1, t, NAN, j_lift1)
-                # assembly.mirror_state: the lifted band wins where both hold
-                state = BETWEEN
-                if abs(lift - bands[side, 0]) <= bands[side, 2]:
-                    state = DEPLOYED
-                if abs(lift - bands[side, 1]) <= bands[side, 2]:
-                    state = LIFTED
+                state = _state(lift, bands[side, 0], bands[side, 1], bands[side, 2])
         if state == BETWEEN:
             n_moving += 1
             continue
@@ -302,3 +309,23 @@ def apply_transforms(T, xyz):
         x, y, z = xyz[p, 0], xyz[p, 1], xyz[p, 2]
         for j in range(3):
             xyz[p, j] = T[p, j, 0] * x + T[p, j, 1] * y + T[p, j, 2] * z + T[p, j, 3]
+
+
+@_jit
+def interp_angles(ts, a, q, mode, out):
+    """Angles [rad] at times ``q`` (n,) float64 [s] from samples ``ts``, ``a`` (k,)
+    float64 (strictly increasing times) into ``out`` (n,) float64: the interpolation
+    :func:`assemble_points` applies per beam (``mode`` NAN, CLAMP or EXTRAPOLATE outside
+    the samples), for :meth:`~nodlidar.runtime.assembly.AngleSamples.at`."""
+    j = 0
+    for p in range(q.size):
+        out[p], j = _interp(ts, a, q[p], mode, j)
+
+
+@_jit
+def mirror_states(angle, deployed, lifted, tol, out):
+    """States (DEPLOYED, LIFTED, BETWEEN) of lift-servo angles ``angle`` (n,) float64
+    [rad] against the end angles ``deployed``, ``lifted`` and ``tol`` [rad] into ``out``
+    (n,) int8: the classification :func:`assemble_points` applies per beam."""
+    for p in range(angle.size):
+        out[p] = _state(angle[p], deployed, lifted, tol)

@@ -36,7 +36,7 @@ from ..dynamixel import RAD_PER_TICK
 from ..errors import ParameterError, require
 from ..frames import check_transform, refuse_renamed
 from ..geometry import CLEAR, TOL, rotate_about_axis
-from .servo_angles import MirrorLiftProfile, interpolate_angle, lift_profiles
+from .servo_angles import MirrorLiftProfile, lift_profiles
 
 if TYPE_CHECKING:
     from ..geometry import Perturbation
@@ -215,15 +215,22 @@ class AngleSamples:
         return cls(t[keep], a[keep])
 
     def at(self, t: ArrayLike, outside: Outside = "nan") -> np.ndarray:
-        """Linearly interpolated angle [rad] at times ``t`` [s]; NaN outside the samples
-        (or the end sample's angle, or extrapolated: ``outside``, as
-        :func:`~nodlidar.runtime.servo_angles.interpolate_angle`)."""
-        ts, a = self.t_s, self.angle_rad
-        if (outside == "nan" and ts.ndim == 1 and ts.shape == a.shape and ts.size >= 1
-                and bool(np.all(ts[1:] > ts[:-1]))):
-            # the same numbers in one pass: np.interp gives NaN outside [t_0, t_-1] itself
-            return np.interp(np.asarray(t, dtype=float), ts, a, left=np.nan, right=np.nan)
-        return interpolate_angle(ts, a, t, outside=outside)
+        """Linearly interpolated angle [rad] at times ``t`` [s] (any shape); NaN outside
+        the samples (or the end sample's angle, or extrapolated: ``outside``, as
+        :func:`~nodlidar.runtime.servo_angles.interpolate_angle`). The interpolation
+        :func:`assemble` applies per beam (the compiled kernel's ``interp_angles``)."""
+        from ._assembly_kernel import CLAMP, EXTRAPOLATE, NAN, interp_angles
+
+        modes = {"nan": NAN, "clamp": CLAMP, "extrapolate": EXTRAPOLATE}
+        require(outside in modes, "outside", outside, "'nan', 'clamp' or 'extrapolate'")
+        n_min = 2 if outside == "extrapolate" else 1
+        require(self.t_s.size >= n_min, "samples", self.t_s.size, f">= {n_min} samples")
+        q = np.asarray(t, dtype=float)
+        out = np.empty(q.shape)
+        interp_angles(np.ascontiguousarray(self.t_s, dtype=float),
+                      np.ascontiguousarray(self.angle_rad, dtype=float),
+                      np.ascontiguousarray(q).reshape(-1), modes[outside], out.reshape(-1))
+        return out
 
 
 @dataclass(frozen=True, eq=False, init=False)
@@ -464,13 +471,18 @@ class AssemblyStats:
     points: int = 0
 
 
-def mirror_state(angle_rad: np.ndarray, profile: MirrorLiftProfile,
+def mirror_state(angle_rad: ArrayLike, profile: MirrorLiftProfile,
                  tolerance_rad: float = LIFT_TOLERANCE_RAD) -> np.ndarray:
-    """DEPLOYED / LIFTED / BETWEEN of lift-servo angles [rad] (NaN -> BETWEEN: unknown)."""
-    a = np.asarray(angle_rad, dtype=float)
-    out = np.full(a.shape, BETWEEN, dtype=np.int8)
-    out[np.abs(a - profile.deployed_rad) <= tolerance_rad] = DEPLOYED
-    out[np.abs(a - profile.lifted_rad) <= tolerance_rad] = LIFTED
+    """DEPLOYED / LIFTED / BETWEEN (int8, shape of ``angle_rad``) of lift-servo angles
+    [rad]: within ``tolerance_rad`` of an end (the lifted band wins where both hold), NaN
+    -> BETWEEN (unknown). The classification :func:`assemble` applies per beam (the
+    compiled kernel's ``mirror_states``)."""
+    from ._assembly_kernel import mirror_states
+
+    a = np.ascontiguousarray(angle_rad, dtype=float)
+    out = np.empty(a.shape, dtype=np.int8)
+    mirror_states(a.reshape(-1), float(profile.deployed_rad), float(profile.lifted_rad),
+                  float(tolerance_rad), out.reshape(-1))
     return out
 
 
