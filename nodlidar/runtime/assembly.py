@@ -1,6 +1,9 @@
 """3D assembly: scans + actuator samples + the design's BeamModels -> a point cloud.
 
-Pure functions over arrays, vectorised over every beam of many scans at once:
+Every beam of many scans goes through one compiled per-point kernel
+(:func:`nodlidar.runtime._assembly_kernel.assemble_points`, numba, loaded by the first
+assembly and not by importing this module); this module validates the inputs, builds the
+per-step and per-keyframe tables it reads and the :class:`PointCloud`. Per beam:
 
 * each beam's time is its scan's time (SCIP step 0) + its step offset
   (:meth:`LidarModel.beam_time_s`, the one place that convention lives);
@@ -562,7 +565,9 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
     Returns
     -------
     PointCloud
-        Only valid points; ``meta`` holds the :class:`AssemblyStats` counts.
+        Only valid points; ``meta`` holds the :class:`AssemblyStats` counts. Its arrays
+        are the first ``n`` rows of buffers sized for every beam (the kernel writes the
+        kept points compressed; the dropped beams' share stays allocated with them).
     """
     refuse_renamed(renamed, "assemble")
     require(frame in FRAMES, "frame", frame, ", ".join(FRAMES))
