@@ -106,6 +106,15 @@ _GROUP_WEIGHTS = {
         _CHAR0 * (64 ** n - 1) // 63)
     for n in (1, 2, 3, 4)
 }
+#: n_chars -> the place values of :data:`_GROUP_WEIGHTS` and a weight for one LF (0x0A)
+#: that stands for the offset: 10 times it is -offset + f with 0 < f < 1, so the product
+#: of a group's characters and an LF is the value + f, exactly (every partial sum is a
+#: multiple of 1/32 below 2**19 in float32), and the cast to int32 (which truncates) gives
+#: the value: no subtraction (tests/test_scip_codec.py checks every group up to 3 chars)
+_LF_WEIGHTS = {
+    n: np.append(w, -round((off - 0.5) / 10 * 64) / 64).astype(w.dtype)
+    for n, (w, off) in _GROUP_WEIGHTS.items()
+}
 
 
 class ScipChecksumWarning(UserWarning):
@@ -287,16 +296,6 @@ def decode_values(data: bytes | bytearray | memoryview | np.ndarray, n_chars: in
             raise ProtocolError(_BAD_CHAR)
         a = a.astype(np.uint8)
     return _decode_digits(a, n_chars)
-
-#: n_chars -> the place values of :data:`_GROUP_WEIGHTS` and a weight for one LF (0x0A)
-#: that stands for the offset: 10 times it is -offset + f with 0 < f < 1, so the product
-#: of a group's characters and an LF is the value + f, exactly (every partial sum is a
-#: multiple of 1/32 below 2**19 in float32), and the cast to int32 (which truncates) gives
-#: the value: no subtraction (tests/test_scip_codec.py checks every group up to 3 chars)
-_LF_WEIGHTS = {
-    n: np.append(w, -round((off - 0.5) / 10 * 64) / 64).astype(w.dtype)
-    for n, (w, off) in _GROUP_WEIGHTS.items()
-}
 
 
 def _decode_digits(a: np.ndarray, n_chars: int) -> np.ndarray:
