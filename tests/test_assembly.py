@@ -15,7 +15,14 @@ from nodlidar.errors import ParameterError
 from nodlidar.geometry import rot_y
 from nodlidar.paper import TABLE_I_PERTURBATIONS
 from nodlidar.runtime.actuators import MirrorLiftProfile, NodProfile
-from nodlidar.runtime.assembly import AssemblyModel, PoseTrack, ScanBatch, assemble, mirror_state
+from nodlidar.runtime.assembly import (
+    AngleSamples,
+    AssemblyModel,
+    PoseTrack,
+    ScanBatch,
+    assemble,
+    mirror_state,
+)
 from nodlidar.sim.raycast import SceneSimulator
 from nodlidar.sim.scene import SensorPose, builtin_scene, wall_scene
 from nodlidar.solver import solve
@@ -467,3 +474,26 @@ def test_kernel_interpolation_is_interpolate_angle():
     assert_allclose(one.at([0.5, 1.0, 1.5], "clamp"), [0.2, 0.2, 0.2])
     with pytest.raises(ParameterError, match="samples"):
         one.at([1.0], "extrapolate")
+
+
+def test_kernel_signature_does_not_change_with_array_layout():
+    """Read-only, strided or int32 inputs (a buffer, a view, a driver's dtype) are made
+    plain before the kernel: the same points and no new compiled signature (each would be
+    another multi-second compilation in the middle of a run)."""
+    from nodlidar.runtime import _assembly_kernel as K
+
+    model = AssemblyModel.from_design(DESIGN)
+    rng = np.random.default_rng(9)
+    batch = ScanBatch.from_arrays(LIDAR.steps, rng.uniform(0.2, 5.0, (3, LIDAR.n_steps)),
+                                  [0.1, 0.2, 0.3])
+    nod = (np.arange(0.0, 0.6, 0.01), np.linspace(-0.2, 0.2, 60))
+    ref = assemble(model, batch, nod)
+    n_sig = len(K.assemble_points.signatures)
+    r = np.repeat(batch.ranges_m, 2)[::2]  # strided view
+    r.setflags(write=False)
+    odd = ScanBatch(batch.steps.astype(np.int32), r, batch.scan, batch.scan_time_s)
+    t_nod = np.repeat(nod[0], 2)[::2]
+    t_nod.setflags(write=False)
+    got = assemble(model, odd, AngleSamples(t_nod, nod[1]))  # as given: not re-sorted
+    assert len(K.assemble_points.signatures) == n_sig
+    assert_array_equal(got.xyz, ref.xyz)  # the same arithmetic on the same numbers

@@ -60,6 +60,15 @@ DEPLOYED, LIFTED, BETWEEN = 0, 1, 2
 LIFT_TOLERANCE_RAD = 3 * RAD_PER_TICK
 
 
+def _plain(a: Any, dtype: Any = float) -> np.ndarray:
+    """``a`` as a C-contiguous, writeable array of ``dtype``: the one array type per
+    argument the compiled kernels are compiled (and cached) for. A strided or read-only
+    array (a view, ``np.broadcast_to``, a buffer) would be a new numba signature: another
+    compilation in the middle of a run. Copies only such arrays."""
+    out = np.ascontiguousarray(a, dtype=dtype)
+    return out if out.flags.writeable else out.copy()
+
+
 @dataclass(frozen=True, eq=False)
 class PointCloud:
     """Points with per-point provenance. All arrays have length ``n``.
@@ -230,9 +239,8 @@ class AngleSamples:
         require(self.t_s.size >= n_min, "samples", self.t_s.size, f">= {n_min} samples")
         q = np.asarray(t, dtype=float)
         out = np.empty(q.shape)
-        interp_angles(np.ascontiguousarray(self.t_s, dtype=float),
-                      np.ascontiguousarray(self.angle_rad, dtype=float),
-                      np.ascontiguousarray(q).reshape(-1), modes[outside], out.reshape(-1))
+        interp_angles(_plain(self.t_s), _plain(self.angle_rad), _plain(q).reshape(-1),
+                      modes[outside], out.reshape(-1))
         return out
 
 
@@ -305,10 +313,10 @@ class PoseTrack:
         :func:`assemble` applies) without building the (n, 4, 4) matrices."""
         from ._assembly_kernel import apply_poses
 
-        t = np.ascontiguousarray(t, dtype=float).reshape(-1)
+        t = _plain(t).reshape(-1)
         out = np.array(p, dtype=float, order="C")  # a copy: the kernel works in place
         require(out.shape == (t.size, 3), "p.shape", out.shape, f"({t.size}, 3)")
-        apply_poses(np.asarray(self.t_s, float), self._segment_table, t, out)
+        apply_poses(_plain(self.t_s), self._segment_table, t, out)
         return out
 
     @cached_property
@@ -450,8 +458,8 @@ class AssemblyModel:
         pv = np.broadcast_to(c.pivot, (m, 3))
         rows = np.column_stack([c.ax, c.ay, c.az, c.bx, c.by, c.bz, c.t_mirror, c.d0x, c.d0y,
                                 c.d0z, pv[:, 0], pv[:, 1], pv[:, 2]]).astype(float, order="C")
-        step_dt = np.ascontiguousarray(self.lidar.beam_time_s(0.0, self.lidar.steps))
-        return rows, np.ascontiguousarray(c.mirror, dtype=np.int16), step_dt
+        step_dt = _plain(self.lidar.beam_time_s(0.0, self.lidar.steps))
+        return _plain(rows), _plain(c.mirror, np.int16), step_dt
 
     @cached_property
     def step_side(self) -> np.ndarray:
@@ -482,7 +490,7 @@ def mirror_state(angle_rad: ArrayLike, profile: MirrorLiftProfile,
     compiled kernel's ``mirror_states``)."""
     from ._assembly_kernel import mirror_states
 
-    a = np.ascontiguousarray(angle_rad, dtype=float)
+    a = _plain(angle_rad)
     out = np.empty(a.shape, dtype=np.int8)
     mirror_states(a.reshape(-1), float(profile.deployed_rad), float(profile.lifted_rad),
                   float(tolerance_rad), out.reshape(-1))
@@ -567,7 +575,8 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
     PointCloud
         Only valid points; ``meta`` holds the :class:`AssemblyStats` counts. Its arrays
         are the first ``n`` rows of buffers sized for every beam (the kernel writes the
-        kept points compressed; the dropped beams' share stays allocated with them).
+        kept points compressed; the dropped beams' share stays allocated with them, copied
+        out instead when more than half the beams were dropped).
     """
     refuse_renamed(renamed, "assemble")
     require(frame in FRAMES, "frame", frame, ", ".join(FRAMES))
@@ -583,10 +592,10 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
     from . import _assembly_kernel as _kernel
 
     lidar = model.lidar
-    steps = np.ascontiguousarray(scans.steps, dtype=np.int64)
-    r_all = np.ascontiguousarray(scans.ranges_m, dtype=float)
-    scan_i = np.ascontiguousarray(scans.scan, dtype=np.int64)
-    scan_time = np.ascontiguousarray(scans.scan_time_s, dtype=float)
+    steps = _plain(scans.steps, np.int64)
+    r_all = _plain(scans.ranges_m)
+    scan_i = _plain(scans.scan, np.int64)
+    scan_time = _plain(scans.scan_time_s)
     n_beams = r_all.size
     require(steps.shape == r_all.shape == scan_i.shape and r_all.ndim == 1, "scans.shape",
             (steps.shape, r_all.shape, scan_i.shape), "three (N,) arrays")
@@ -605,7 +614,7 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
         smp = AngleSamples.of(nod)
         n_min = 2 if nod_outside == "extrapolate" else 1
         require(smp.t_s.size >= n_min, "nod samples", smp.t_s.size, f">= {n_min} samples")
-        nod_t, nod_a = smp.t_s, smp.angle_rad
+        nod_t, nod_a = _plain(smp.t_s), _plain(smp.angle_rad)
         nod_mode = {"nan": _kernel.NAN, "clamp": _kernel.CLAMP,
                     "extrapolate": _kernel.EXTRAPOLATE}[nod_outside]
 
@@ -629,7 +638,7 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
         sm = AngleSamples.of(samples)
         require(sm.t_s.size >= 1, "lift samples", sm.t_s.size, ">= 1 sample")
         side_mode[k] = -1
-        lift[k] = (sm.t_s, sm.angle_rad)
+        lift[k] = (_plain(sm.t_s), _plain(sm.angle_rad))
         bands[k] = (prof.deployed_rad, prof.lifted_rad, lift_tolerance_rad)
 
     track: PoseTrack | None = None
@@ -647,7 +656,7 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
             W0 = check_transform(world_from_robot, "world_from_robot")
             robot_T = W0 @ robot_T  # one constant transform (4x4 @ 4x4: no BLAS threads)
     frame_mode = 0 if frame == "sensor" else 2 if track is not None else 1
-    pose_t = np.zeros(1) if track is None else np.asarray(track.t_s, float)
+    pose_t = np.zeros(1) if track is None else _plain(track.t_s)
     pose_seg = np.zeros((1, 19)) if track is None else track._segment_table
 
     # outputs for every beam; the kernel writes the kept ones first (the cloud's arrays
@@ -662,11 +671,15 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
     lifted = np.empty(n_beams, dtype=bool)
     n, n_ok, n_no_nod, n_moving, n_blocked = _kernel.assemble_points(
         steps, r_all, scan_i, scan_time, lidar.step_min, step_dt, rows, row_mirror,
-        lidar.n_steps, model.step_side, np.ascontiguousarray(model.clear, dtype=bool), nod_t,
+        lidar.n_steps, _plain(model.step_side, np.int8), _plain(model.clear, bool), nod_t,
         nod_a, nod_mode, side_mode,
         lift[0][0], lift[0][1], lift[1][0], lift[1][1], bands, float(model.range_offset_m),
-        float(model.range_scale), frame_mode, np.ascontiguousarray(robot_T[:3]), pose_t,
+        float(model.range_scale), frame_mode, _plain(robot_T[:3]), pose_t,
         pose_seg, xyz, t, r, nod_rad, step_out, scan_out, mirror, lifted)
+    if 2 * n < n_beams:  # most beams dropped: do not keep the buffers alive for a few points
+        xyz, t, r, nod_rad = xyz[:n].copy(), t[:n].copy(), r[:n].copy(), nod_rad[:n].copy()
+        step_out, scan_out = step_out[:n].copy(), scan_out[:n].copy()
+        mirror, lifted = mirror[:n].copy(), lifted[:n].copy()
     xyz, t, r, nod_rad = xyz[:n], t[:n], r[:n], nod_rad[:n]
     if callable_pose is not None:  # per-point poses of the kept points' times
         W = np.asarray(callable_pose(t), dtype=float)
@@ -674,7 +687,7 @@ def assemble(model: AssemblyModel, scans: ScanBatch, nod: Any, *,
             raise ParameterError("world_from_robot(t).shape", W.shape,
                                  f"(4, 4) or ({n}, 4, 4)")
         W = check_transform(W, "world_from_robot(t)", stack=W.ndim == 3)
-        _kernel.apply_transforms(np.ascontiguousarray(np.broadcast_to(W, (n, 4, 4))), xyz)
+        _kernel.apply_transforms(_plain(np.broadcast_to(W, (n, 4, 4))), xyz)
     stats = AssemblyStats(beams=n_beams, error_codes=n_beams - n_ok, no_nod=n_no_nod,
                           mirror_moving=n_moving, blocked=n_blocked, points=n)
     return PointCloud(xyz, t, step_out[:n], mirror[:n], scan_out[:n], r, frame,
