@@ -30,8 +30,9 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["ROW", "SEG", "cos_sin", "rodrigues", "assemble_points", "apply_poses",
-           "apply_transforms", "interp_angles", "mirror_states"]
+__all__ = ["ROW", "SEG", "NAN", "CLAMP", "EXTRAPOLATE", "CONSTANT", "cos_sin", "rodrigues",
+           "assemble_points", "apply_poses", "apply_transforms", "interp_angles",
+           "mirror_states"]
 
 _jit = numba.njit(cache=True, nogil=True)
 # the per-point helpers are inlined into the kernels at numba's IR level: as separate
@@ -51,7 +52,8 @@ SEG = {n: i for i, n in enumerate(
     ("th", "kx", "ky", "kz", "r00", "r01", "r02", "r10", "r11", "r12", "r20", "r21", "r22",
      "p0", "p1", "p2", "dp0", "dp1", "dp2"))}
 
-# interpolation outside the samples (servo_angles.interpolate_angle's modes) + constant
+#: Interpolation outside the samples (servo_angles.interpolate_angle's modes) and a
+#: constant angle: the ``mode`` argument of :func:`interp_angles` / :func:`assemble_points`.
 NAN, CLAMP, EXTRAPOLATE, CONSTANT = 0, 1, 2, 3
 DEPLOYED, LIFTED, BETWEEN = 0, 1, 2  # assembly's mirror states
 
