@@ -166,20 +166,31 @@ def world_rays(rel, d_head, pivot, cos_nod, sin_nod, t, rot, position, velocity,
     d = np.empty((n, 3))
     o32 = np.empty((n, 3), dtype=np.float32)
     d32 = np.empty((n, 3), dtype=np.float32)
+    # the constants in locals: the compiler cannot know the outputs do not alias them
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    cx, cy, cz = pivot[0], pivot[1], pivot[2]
     for i in range(n):
         c, s = cos_nod[i], sin_nod[i]
-        px = c * rel[i, 0] + s * rel[i, 2] + pivot[0]
-        py = rel[i, 1] + pivot[1]
-        pz = -s * rel[i, 0] + c * rel[i, 2] + pivot[2]
-        qx = c * d_head[i, 0] + s * d_head[i, 2]
-        qy = d_head[i, 1]
-        qz = -s * d_head[i, 0] + c * d_head[i, 2]
+        x, y, z = rel[i, 0], rel[i, 1], rel[i, 2]
+        px = c * x + s * z + cx
+        py = y + cy
+        pz = -s * x + c * z + cz
+        x, y, z = d_head[i, 0], d_head[i, 1], d_head[i, 2]
+        qx = c * x + s * z
+        qy = y
+        qz = -s * x + c * z
         dt = t[i] - t0
-        for j in range(3):
-            o[i, j] = (px * rot[j, 0] + py * rot[j, 1] + pz * rot[j, 2]) + (position[j] + dt * velocity[j])
-            d[i, j] = qx * rot[j, 0] + qy * rot[j, 1] + qz * rot[j, 2]
-        _embree_row(o32, d32, i, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2],
-                    origin, scale)
+        ox = (px * r00 + py * r01 + pz * r02) + (position[0] + dt * velocity[0])
+        oy = (px * r10 + py * r11 + pz * r12) + (position[1] + dt * velocity[1])
+        oz = (px * r20 + py * r21 + pz * r22) + (position[2] + dt * velocity[2])
+        dx = qx * r00 + qy * r01 + qz * r02
+        dy = qx * r10 + qy * r11 + qz * r12
+        dz = qx * r20 + qy * r21 + qz * r22
+        o[i, 0], o[i, 1], o[i, 2] = ox, oy, oz
+        d[i, 0], d[i, 1], d[i, 2] = dx, dy, dz
+        _embree_row(o32, d32, i, ox, oy, oz, dx, dy, dz, origin, scale)
     return o, d, o32, d32
 
 

@@ -197,10 +197,10 @@ class _MeshCaster:
         self._radius2 = (float(np.linalg.norm(hi - lo)) / 2 + self._MARGIN_M) ** 2
 
     def first(self, o32: np.ndarray, d32: np.ndarray) -> np.ndarray:
-        """Triangle index (m,) of each prepared embree ray's first hit (-1 none)."""
+        """Triangle index (m,) int32 of each prepared embree ray's first hit (-1 none)."""
         if not len(o32):
-            return np.zeros(0, dtype=np.int64)
-        return np.asarray(self._run(o32, d32), dtype=np.int64)
+            return np.zeros(0, dtype=np.int32)
+        return self._run(o32, d32)
 
 
 class SceneSimulator:
@@ -260,6 +260,7 @@ class SceneSimulator:
         self._static_prep = ((self._static._origin, self._static._scale) if self._static is not None
                              else (np.zeros(3), 1.0))
         self._no_pos, self._no_rows = np.zeros(3), np.zeros((0, 3))
+        self._steps_f = self.lidar.steps.astype(float)  # beam_times' float conversion, once
         # each mirror's glass as a mesh of its own (two triangles): beams are cast at it in
         # its unturned frame, one embree call per mirror and bounce
         # (culled to the rays that reach its beam window, then its bounding sphere)
@@ -287,7 +288,7 @@ class SceneSimulator:
 
     def beam_times(self, t_scan_s: float, steps: np.ndarray | None = None) -> np.ndarray:
         """Time [s] of each step's measurement in the scan stamped ``t_scan_s`` (step 0)."""
-        steps = self.lidar.steps if steps is None else np.asarray(steps)
+        steps = self._steps_f if steps is None else np.asarray(steps)
         return self.lidar.beam_time_s(t_scan_s, steps)
 
     def head_rays(self, steps: np.ndarray, lift_left: np.ndarray | float = 0.0,
@@ -482,7 +483,9 @@ class SceneSimulator:
         steps = self.lidar.steps if whole else np.asarray(steps)
         n = len(steps)
         t = self.beam_times(t_scan_s, steps)
-        nod = np.array(np.broadcast_to(np.asarray(nod_rad, dtype=float), (n,)), dtype=float)
+        a = np.asarray(nod_rad, dtype=float)
+        nod = (a.copy() if a.shape == (n,) else np.full(n, a) if a.ndim == 0
+               else np.array(np.broadcast_to(a, (n,))))
         o_h, d_h, off, first, bounces, alive, *rel = self._head_rays_cached(
             steps, lift_left, lift_right, whole=True if whole else None)
         o_w, d_w, o32, d32 = self._to_world(o_h, d_h, nod, t, rel[0] if rel else None)
