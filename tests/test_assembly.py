@@ -497,3 +497,24 @@ def test_kernel_signature_does_not_change_with_array_layout():
     got = assemble(model, odd, AngleSamples(t_nod, nod[1]))  # as given: not re-sorted
     assert len(K.assemble_points.signatures) == n_sig
     assert_array_equal(got.xyz, ref.xyz)  # the same arithmetic on the same numbers
+
+
+def test_kernel_projection_is_beam_model_points():
+    """The kernel's projection and nod against BeamModel.points (the numpy projection of
+    BeamColumns.project, used outside the assembly) on the kept beams: deployed and
+    lifted sides, ranges short of the mirror, the Table I perturbed model. The
+    same formula in the same order: 1e-12 m on points of a few metres is rounding only."""
+    model = AssemblyModel.from_design(DESIGN, TABLE_I_PERTURBATIONS, "table-1")
+    rng = np.random.default_rng(12)
+    ranges = rng.uniform(0.2, 5.0, (4, LIDAR.n_steps))
+    tm = model.deployed.t_mirror
+    short = (rng.random(ranges.shape) < 0.1) & (tm > 0)
+    ranges[short] = (tm * np.ones((4, 1)))[short] * 0.5
+    batch = ScanBatch.from_arrays(LIDAR.steps, ranges, 0.1 + np.arange(4) * T_SCAN)
+    up = model.lift_right.lifted_rad
+    pc = assemble(model, batch, nod_samples(), mirror_right=(np.array([0.0, 5.0]), np.full(2, up)))
+    assert pc.lifted.any() and (~pc.lifted).any() and (pc.range_m < 0.2).any()
+    for lifted, bm in ((False, model.deployed), (True, model.lifted)):
+        sel = pc.lifted == lifted
+        want = bm.points(pc.step[sel], pc.range_m[sel], pc.nod_rad[sel])
+        assert_allclose(pc.xyz[sel], want, atol=1e-12, rtol=0)
