@@ -438,7 +438,6 @@ class _ScanLayout(NamedTuple):
 
 #: (block length, n_chars) -> the device's scan layout, or None if no device sends that
 _SCAN_LAYOUTS: dict[tuple[int, int], _ScanLayout | None] = {}
-_UNSEEN = _ScanLayout(np.zeros(0, np.intp), np.zeros((0, 0), np.intp), b"", b"", -1)
 
 
 def _scan_layout(size: int, n_chars: int) -> _ScanLayout | None:
@@ -1292,22 +1291,34 @@ def decode_scan(reply: ScipReply | bytes) -> ScanFrame:
                        reply.payload, body, None)
 
 
-#: the status lines a scan message can have: ``00`` (GD/GS) and ``99`` (MD/MS), with sums
-_SCAN_STATUS_LINES = {b"00P": "00", b"99b": "99"}
+#: the status lines (with their LF) a scan message can have: ``00`` (GD/GS) and ``99``
+#: (MD/MS), with sums
+_SCAN_STATUS_LINES = {b"00P\n": "00", b"99b\n": "99"}
 _LINE = DATA_LINE_CHARS + 2
 
 
-@functools.lru_cache(maxsize=256)
-def _scan_echo(echo: bytes) -> tuple[DistanceRequest, int, int] | None:
-    """``(request, n_chars, n_values)`` of a valid scan echo line, else None (cached: a
-    device echoes the same few lines again and again)."""
-    if not _PRINTABLE_RE.fullmatch(echo):
+#: (echo + status lines, block length) -> what _scan_head found (cached: a device sends the
+#: same few heads again and again; an MD/MS series counts down through at most 100 echoes)
+_SCAN_HEADS: dict[tuple[bytes, int], tuple[DistanceRequest, str, int, _ScanLayout] | None] = {}
+_SCAN_HEADS_MAX = 256
+
+
+def _scan_head(head: bytes, size: int) -> tuple[DistanceRequest, str, int, _ScanLayout] | None:
+    """``(request, status, n_chars, layout)`` if ``head`` (the echo line, the status line,
+    each with its LF) starts a scan message as a device sends it and a ``size``-byte data
+    block (timestamp line to the last LF) is the device's layout for it, else None."""
+    i = head.find(LF)
+    status = _SCAN_STATUS_LINES.get(head[i + 1:]) if i >= 2 else None
+    if status is None or not _PRINTABLE_RE.fullmatch(head, 0, i):
         return None
     try:
-        req = _parse_request_cached(echo.decode("ascii"))
+        req = _parse_request_cached(head[:i].decode("ascii"))
     except (ScipRequestError, ParameterError):
         return None
-    return req, req.n_chars, req.n_values
+    lay = _scan_layout(size, req.n_chars)
+    if lay is None or lay.n_values != req.n_values:
+        return None
+    return req, status, req.n_chars, lay
 
 
 def _device_scan(message: bytes) -> ScanFrame | None:
@@ -1323,20 +1334,18 @@ def _device_scan(message: bytes) -> ScanFrame | None:
     """
     msg = message if type(message) is bytes else bytes(message)
     n = len(msg) - 1  # the block ends with the first LF of the final LF LF, at msg[n - 1]
-    i = msg.find(LF, 0, n)  # end of the echo
-    status = _SCAN_STATUS_LINES.get(msg[i + 1:i + 4]) if i >= 2 else None
-    if status is None or msg[i + 4:i + 5] != LF or msg[n - 1:] != b"\n\n":
+    start = msg.find(LF, 0, n) + 5  # the timestamp's first character (echo, LF, 3, LF)
+    key = (msg[:start], n - start)
+    head = _SCAN_HEADS.get(key)
+    if head is None and key not in _SCAN_HEADS:
+        head = _scan_head(*key) if start >= 7 else None
+        if len(_SCAN_HEADS) >= _SCAN_HEADS_MAX:
+            _SCAN_HEADS.clear()  # bounded whatever arrives
+        _SCAN_HEADS[key] = head
+    if head is None:
         return None
-    scan = _scan_echo(msg[:i])
-    if scan is None:
-        return None
-    req, n_chars, n_values = scan
-    start = i + 5  # the timestamp's first character
-    lay = _SCAN_LAYOUTS.get((n - start, n_chars), _UNSEEN)
-    if lay is _UNSEEN:
-        lay = _scan_layout(n - start, n_chars)
-    if (lay is None or lay.n_values != n_values
-            or msg[start + 5:n:_LINE] != lay.lf_stride
+    req, status, n_chars, lay = head
+    if (msg[n - 1:] != b"\n\n" or msg[start + 5:n:_LINE] != lay.lf_stride
             or msg[start:n].translate(None, _DATA_CHARS) != lay.lfs):
         return None
     a = np.frombuffer(msg, np.uint8, n - start, start)
