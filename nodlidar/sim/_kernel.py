@@ -126,6 +126,8 @@ def _measure_one(r, z, noise, near_m, knee_m, rel):
 
 
 # -- array kernels ---------------------------------------------------------------------
+# (rodrigues, reflect and mover_positions are the scalar helpers the fused kernels use, on
+# arrays: tests/test_sim_kernel.py checks the helpers through them)
 @_jit
 def rodrigues(v, axis, c, s):
     """geometry.rotate_about_axis row by row: ``v (n, 3)`` about unit ``axis (n, 3)`` by
