@@ -15,10 +15,11 @@ lidar), ``along`` the unit in-plane direction that stays horizontal for a vertic
 is the axis of the paper's tilt error Delta-beta only; the lift motor turns all of a
 side's mirrors about the side's lift axis (:mod:`nodlidar.hinge`, docs/conventions.md).
 
-The compiled point-assembly kernel (:mod:`nodlidar.runtime._assembly_kernel`) is the
-per-point counterpart of these formulas: its ``rodrigues`` is :func:`rotate_columns` for
-one vector and its nod is :func:`pitch_about_pivot`'s ``R_y``, in the same operation order
-(tests/test_assembly.py checks the rotation against :func:`rotate_columns` to 1e-12).
+The compiled kernels (the point assembly's and the simulator's) use the per-vector
+counterparts of these formulas from :mod:`nodlidar._compiled_geometry`: its ``rodrigues``
+is :func:`rotate_columns` for one vector and its ``reflect`` is :func:`reflect`, in the
+same operation order; the assembly's nod is :func:`pitch_about_pivot`'s ``R_y``
+(tests/test_assembly.py and tests/test_sim_kernel.py check them to 1e-12).
 """
 
 from __future__ import annotations

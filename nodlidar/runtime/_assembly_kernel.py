@@ -8,9 +8,10 @@ robot and the robot's slerped pose at the beam's own time; the kept points are w
 compressed into preallocated outputs. The per-step and per-keyframe tables, the
 validation and the PointCloud are built by :mod:`nodlidar.runtime.assembly`.
 
-The scalar rotation math is the per-point counterpart of :mod:`nodlidar.geometry`:
-:func:`rodrigues` is :func:`~nodlidar.geometry.rotate_columns` (the same formula, the same
-operation order) and :func:`cos_sin` is :func:`nodlidar.beams.cos_sin`; the slerp is
+The scalar rotation math is the per-point counterpart of :mod:`nodlidar.geometry`, from
+:mod:`nodlidar._compiled_geometry` (shared with the simulator's kernels):
+:func:`rodrigues` is :func:`~nodlidar.geometry.rotate_columns` (the same formula, the
+same operation order) and :func:`cos_sin` is :func:`nodlidar.beams.cos_sin`; the slerp is
 :class:`~nodlidar.runtime.assembly.PoseTrack`'s ``R_i exp(f th_i [k_i])``
 (tests/test_assembly.py checks both against those to 1e-12).
 
@@ -29,6 +30,8 @@ import math
 
 import numba
 import numpy as np
+
+from .._compiled_geometry import cos_sin, rodrigues
 
 __all__ = ["ROW", "SEG", "NAN", "CLAMP", "EXTRAPOLATE", "CONSTANT", "cos_sin", "rodrigues",
            "assemble_points", "apply_poses", "apply_transforms", "interp_angles",
@@ -56,30 +59,6 @@ SEG = {n: i for i, n in enumerate(
 #: constant angle: the ``mode`` argument of :func:`interp_angles` / :func:`assemble_points`.
 NAN, CLAMP, EXTRAPOLATE, CONSTANT = 0, 1, 2, 3
 DEPLOYED, LIFTED, BETWEEN = 0, 1, 2  # assembly's mirror states
-
-
-@_inline
-def cos_sin(a: float) -> tuple[float, float]:
-    """``cos a``, ``sin a`` [rad] from one ``tan`` of the half angle, as
-    :func:`nodlidar.beams.cos_sin` (exact for ``|a| <= pi``; within a few ulp)."""
-    t = math.tan(a * 0.5)
-    t2 = t * t
-    den = 1.0 / (1.0 + t2)
-    return (1.0 - t2) * den, (2.0 * den) * t
-
-
-@_inline
-def rodrigues(x: float, y: float, z: float, kx: float, ky: float, kz: float, c: float,
-              s: float) -> tuple[float, float, float]:
-    """Vector ``(x, y, z)`` turned about unit axis ``k`` by the angle of cosine ``c`` and
-    sine ``s``: ``v c + (k x v) s + k (k.v)(1 - c)``, :func:`nodlidar.geometry.rotate_columns`
-    for one vector."""
-    kv = kx * x + ky * y + kz * z
-    kv = kv * (1.0 - c)
-    qx = x * c + (ky * z - kz * y) * s + kx * kv
-    qy = y * c + (kz * x - kx * z) * s + ky * kv
-    qz = z * c + (kx * y - ky * x) * s + kz * kv
-    return qx, qy, qz
 
 
 @_inline

@@ -23,6 +23,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from .._compiled_geometry import reflect as _reflect
+from .._compiled_geometry import rodrigues as _rodrigues
+
 __all__ = [
     "TRAJ_FIXED",
     "TRAJ_CONSTANT_VELOCITY",
@@ -56,24 +59,6 @@ _DEN_MIN = 1e-12
 
 
 # -- scalar formulas (inlined into the loops) ---------------------------------------------
-@_jit
-def _rodrigues(x, y, z, kx, ky, kz, c, s):
-    """geometry.rotate_columns on one vector: ``v c + (k x v) s + k (k.v)(1 - c)``."""
-    kv = kx * x + ky * y + kz * z
-    kv = kv * (1.0 - c)
-    qx = x * c + (ky * z - kz * y) * s + kx * kv
-    qy = y * c + (kz * x - kx * z) * s + ky * kv
-    qz = z * c + (kx * y - ky * x) * s + kz * kv
-    return qx, qy, qz
-
-
-@_jit
-def _reflect(dx, dy, dz, nx, ny, nz):
-    """geometry.reflect on one vector: ``d - 2 (d.n) n`` (n unit)."""
-    dn = dx * nx + dy * ny + dz * nz
-    return dx - 2.0 * dn * nx, dy - 2.0 * dn * ny, dz - 2.0 * dn * nz
-
-
 @_jit
 def _meets_sphere(ox, oy, oz, dx, dy, dz, centre, radius2):
     """The half-line from o along d meets the ball of squared radius ``radius2`` about
