@@ -52,3 +52,4 @@ lint: $(STAMP)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
+	find nodlidar -name '*.nb[ic]' -delete  # numba's kernel caches (nodlidar/_compiled_geometry.py)

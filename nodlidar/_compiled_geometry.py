@@ -11,7 +11,7 @@ compare them to 1e-12).
 The helpers are ``inline="always"``: numba inlines them into the calling kernel at IR
 level (as separate compiled calls each cost ~13 ns per point). numba's on-disk cache keys
 a kernel on its own source file only, so after editing this module delete the kernels'
-caches (``make clean`` removes every ``__pycache__``) - an installed upgrade replaces every
+caches (``make clean`` deletes them) - an installed upgrade replaces every
 file and invalidates them anyway.
 
 numba is imported here: only the kernel modules import this one (never ``import nodlidar``).
