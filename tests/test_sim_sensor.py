@@ -191,3 +191,43 @@ def test_emulate_command_prints_urls_and_serves(tmp_path, capsys, transport):
     assert proc.returncode == 0
     assert "Traceback" not in err
     assert "stopped" in out
+
+
+_NO_COMPILE_AFTER_START = r"""
+import sys
+import numpy as np
+from nodlidar.sim import _kernel as K
+from nodlidar.sim.sensor import SimulatedSensor
+from nodlidar.solver import solve
+from nodlidar.spec import load_design
+
+def compiled():
+    return {n: len(getattr(K, n).signatures) for n in K.__all__
+            if hasattr(getattr(K, n), "signatures")}
+
+sensor = SimulatedSensor(solve(load_design(sys.argv[1])), "paper-tracking", transport="tcp")
+assert not any(compiled().values()), compiled()      # nothing compiled by the constructor
+with sensor:
+    after_start = compiled()
+    for k in range(3):                                 # what the emulator's thread does
+        sensor.simulate_scan(k)
+    sim = sensor.simulator
+    moving = np.linspace(0.0, 1.0, sim.lidar.steps.size)
+    sim.scan(0.2, 0.1, moving, moving[::-1], rng=np.random.default_rng(1))
+    later = compiled()
+print(sum(after_start.values()), "kernels compiled at start")
+assert later == after_start, {n: (after_start[n], later[n]) for n in later
+                              if later[n] != after_start[n]}
+"""
+
+
+def test_start_compiles_every_scan_kernel_before_serving():
+    """numba compiles at the first call (~5 s the first time on a machine): inside the
+    emulator's thread that lost every scan of a short sweep (``nodlidar demo`` on a fresh
+    cache captured 0 scans). ``start`` must leave nothing to compile for later scans - a
+    moving mover, mirrors lifting and noise included. A fresh interpreter, so no earlier
+    test has compiled anything."""
+    proc = subprocess.run([sys.executable, "-c", _NO_COMPILE_AFTER_START, str(PAPER)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "kernels compiled at start" in proc.stdout

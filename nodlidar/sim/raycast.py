@@ -378,20 +378,27 @@ class SceneSimulator:
         if whole is None:
             whole = bool(np.array_equal(steps, self.lidar.steps))
         if not whole or key is None:
-            return self.head_rays(steps, lift_left, lift_right)
+            return self._frozen_head_rays(steps, lift_left, lift_right)
         hit = self._head_cache.get(key)
         if hit is None:
-            hit = self.head_rays(steps, key[0], key[1])
-            for a in hit:
-                a.setflags(write=False)
-            if len(hit) == 6:
-                # the head points relative to the nod pivot, for to_world (cached with them)
-                rel = hit[0] - self.pivot
-                rel.setflags(write=False)
-                hit = (*hit, rel)
+            hit = self._frozen_head_rays(steps, key[0], key[1])
             if len(self._head_cache) > 64:  # a lift in progress makes many keys
                 self._head_cache.clear()
             self._head_cache[key] = hit
+        return hit
+
+    def _frozen_head_rays(self, steps, lift_left, lift_right):
+        """:meth:`head_rays` read-only, with the head points relative to the nod pivot
+        (for to_world). Cached or not, the kernels then see the same array types: numba
+        compiles one version per argument type, read-only included, and a second version
+        compiled mid-run (mirrors starting to move) would stall the emulator's thread."""
+        hit = self.head_rays(steps, lift_left, lift_right)
+        for a in hit:
+            a.setflags(write=False)
+        if len(hit) == 6:
+            rel = hit[0] - self.pivot
+            rel.setflags(write=False)
+            hit = (*hit, rel)
         return hit
 
     def to_world(self, p_head: np.ndarray, d_head: np.ndarray, nod_rad: np.ndarray,
@@ -475,6 +482,19 @@ class SceneSimulator:
         if noise and rng is None:
             rng = np.random.default_rng(seed)
         return self._truth(rays, dist, obj, part, rng, noise)
+
+    def warm_up(self) -> None:
+        """Compile (or load from numba's cache) every kernel a scan can use, now.
+
+        numba compiles a kernel at its first call: ~5 s per machine the first time (the
+        cache keeps it after), ~0.3 s to load from the cache in a new process. Paid inside
+        a real-time loop - the emulator's first scan while the driver waits - it loses
+        scans, so :meth:`SimulatedSensor.start` calls this before it serves. Simulates
+        (and discards) a scan with the mirrors still, one with them moving and one noisy.
+        """
+        half = np.full(self._steps_f.shape, 0.5)
+        self.scan(0.0, 0.0, 0.0, 0.0, noise=False)
+        self.scan(0.0, 0.0, half, half, noise=True, rng=np.random.default_rng(0))
 
     def _world_rays(self, t_scan_s, nod_rad, lift_left, lift_right, steps):
         """World rays of one scan: (steps, t, nod, head-path offset, first mirror, origins,

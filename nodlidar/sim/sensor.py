@@ -157,6 +157,8 @@ class SimulatedSensor:
         """Serve the lidar and the servo bus; sets :attr:`lidar_url` and :attr:`servo_url`."""
         if self.lidar_url is not None:
             return self
+        # kernels compiled before the first scan is due, not in the emulator's thread
+        self.simulator.warm_up()
         if self.transport == "tcp":
             try:
                 self.lidar_url = self.scip.serve_tcp(self.host, self.lidar_port)
