@@ -120,6 +120,12 @@ class TrackerConfig:
         (``"points"``) or every point with as many random pairs as ``max_points`` points
         have (``"pairs"``, :class:`~nodlidar.tracking.motion.RenyiCost`: the same work,
         and the density mirrors add is not thrown away; default).
+    renyi_pairs : {"all", "window"}
+        Which pairs the Rényi sum takes: all (default), or only pairs of points seen
+        through the same mirror window (``"window"``; the window is ``scan.mirror``): the
+        terms between windows bias the first estimates of a mover along the line of sight
+        (docs/tracking.md, "Along the line of sight"), but over the scenes ``"window"`` is
+        not better as a whole, so it is not the default.
     renyi_method : {"newton", "nelder-mead"}
         Rényi minimiser (:func:`refine_motion`); Newton's method on the closed-form
         derivatives takes a few passes over the pairs instead of ~50 (same minimum within
@@ -153,6 +159,7 @@ class TrackerConfig:
     velocity_fusion: str = "overlap"
     renyi_method: str = "newton"
     renyi_subsample: str = "pairs"
+    renyi_pairs: str = "all"
 
     def __post_init__(self) -> None:
         require(self.confirm_scans >= 2, "confirm_scans", self.confirm_scans, ">= 2")
@@ -162,6 +169,8 @@ class TrackerConfig:
                 self.renyi_method, "nelder-mead or newton")
         require(self.renyi_subsample in ("points", "pairs"), "renyi_subsample",
                 self.renyi_subsample, "points or pairs")
+        require(self.renyi_pairs in ("window", "all"), "renyi_pairs", self.renyi_pairs,
+                "window or all")
         require(self.velocity_fusion in FUSIONS, "velocity_fusion",
                 self.velocity_fusion, ", ".join(FUSIONS))
         require(self.gate_m > 0, "gate_m", self.gate_m, "> 0 m")
@@ -405,6 +414,10 @@ class Tracker:
         Tp = np.concatenate(tr.times[-cfg.window_scans:])
         if len(P) < 3:
             return
+        # the Rényi sum over pairs of points seen through the same mirror window
+        # (TrackerConfig.renyi_pairs)
+        lab = (np.concatenate(tr.mirrors[-cfg.window_scans:])
+               if cfg.entropy == "renyi" and cfg.renyi_pairs == "window" else None)
         # warm start from the previous refinement (a small search around it), cold from the
         # centroid line: keeps one update well inside the scan period
         warm = tr.motion is not None
@@ -415,7 +428,7 @@ class Tracker:
                                   max_points=cfg.max_points,
                                   renyi_method=cfg.renyi_method,
                                   renyi_subsample=cfg.renyi_subsample,
-                                  voxel_max_points=cfg.voxel_max_points,
+                                  voxel_max_points=cfg.voxel_max_points, labels=lab,
                                   search_m_s=cfg.warm_search_m_s if warm else 0.08,
                                   **warm_grid)
 
