@@ -634,3 +634,70 @@ def test_wide_kernel_reads_a_moving_cylinder_slow(design):
 
     assert rel(0.02) < -0.004
     assert abs(rel(0.005)) < 0.0025
+
+
+class _WindowedSeg:
+    """Stub of Segmented: scan k, one 30-point ring moving at 0.13 m/s along y, its points
+    spread over three mirror windows (-1 direct, 0, 1) in shares that change scan to scan."""
+
+    def __init__(self, k):
+        rng = np.random.default_rng(100 + k)
+        t = k * 0.1 + np.linspace(0, 0.09, 30)
+        ang = rng.uniform(-1.2, 1.2, 30)
+        xy = np.array([2.0, 0.0]) + np.outer(t, [0.0, 0.13]) + 0.18 * np.column_stack(
+            [-np.cos(ang), np.sin(ang)])
+        pts = np.column_stack([xy, rng.uniform(0.2, 1.0, 30)])
+        self.mirror = rng.choice([-1, 0, 1], 30, p=[0.2 + 0.05 * (k % 4), 0.4, 0.4 - 0.05 * (k % 4)])
+        self.pts, self.t = pts, t
+        self.scan = ScanPoints(k, np.arange(30), t, self.mirror, np.ones(30), pts, pts, pts,
+                               np.zeros(30))
+
+    def objects(self):
+        return [np.arange(30)]
+
+
+def test_adaptive_pairs_are_within_windows_while_the_window_is_short(monkeypatch):
+    # renyi_pairs="adaptive": the Rényi sum over pairs of one mirror window while the
+    # track's window holds fewer than renyi_all_pairs_scans scans (here 4), over all pairs
+    # from then on; window_scans=6 also checks that the count is of the window's scans.
+    # Every cost the tracker builds is checked against the sum written out from the scans
+    # fed (the oracle, brute force over every pair): the last min(k, 6) scans' points,
+    # same-window pairs for k < 4, all pairs after. <= 180 points: every pair within the
+    # 5-sigma cutoff is kept (the terms beyond are < exp(-6.25) each), so within 1e-3 as
+    # test_renyi_over_pairs_of_one_window; each cost is also 0.002 or more away from the
+    # other kind's oracle at the velocities checked (asserted), so the wrong kind fails.
+    import nodlidar.tracking.motion as M
+
+    built = []
+
+    class Recording(M.RenyiCost):
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            built.append(self)
+
+    monkeypatch.setattr(M, "RenyiCost", Recording)
+    cfg = TrackerConfig(renyi_pairs="adaptive", renyi_all_pairs_scans=4, window_scans=6)
+    trk = Tracker(cfg)
+    segs = [_WindowedSeg(k) for k in range(9)]
+    checked = {"within": 0, "all": 0}
+    for k, seg in enumerate(segs):
+        before = len(built)
+        trk.update(seg)
+        if k == 0:
+            assert len(built) == before  # one scan: no estimate
+            continue
+        cost = built[before]  # the first cost of this update (a re-centred one may follow)
+        win = segs[max(0, k + 1 - 6):k + 1]
+        P = np.vstack([s.pts for s in win])
+        T = np.concatenate([s.t for s in win])
+        lab = np.concatenate([s.mirror for s in win])
+        one = np.zeros(len(P), int)
+        within = min(k + 1, 6) < 4
+        for dv in ([0, 0], [0.02, -0.01]):
+            w = cost.c + np.array(dv)
+            ref_w = _within_label_cost(P, T, w, lab, cfg.sigma_m)
+            ref_a = _within_label_cost(P, T, w, one, cfg.sigma_m)
+            assert abs(ref_w - ref_a) > 0.002
+            assert_allclose(cost(w), ref_w if within else ref_a, atol=1e-3)
+        checked["within" if within else "all"] += 1
+    assert checked == {"within": 2, "all": 6}
