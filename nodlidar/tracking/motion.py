@@ -205,6 +205,50 @@ def _voxel_entropy_grid(p_xy: np.ndarray, t: np.ndarray, W: np.ndarray, t_ref: f
     return np.bincount(row, weights=h, minlength=m)
 
 
+def _draw_label_pairs(labels: np.ndarray, m: int,
+                      rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+    """About ``m`` ordered pairs ``(i, j)``, ``i != j``, drawn uniformly among the pairs of
+    points with the same label, and the weight of one drawn pair in the sum over the
+    unordered same-label pairs (an unbiased estimate, as :class:`RenyiCost`'s draw over
+    all pairs).
+
+    ``i`` uniform over the points, ``j`` uniform over the other points of ``i``'s label
+    (``n_l`` points), kept with probability ``(n_l - 1) / (n_max - 1)``: every ordered
+    same-label pair is then kept with the same probability ``1 / (N (n_max - 1))`` per
+    draw, so each kept one stands for ``N (n_max - 1) / (2 m_drawn)`` unordered pairs.
+    ``m_drawn`` is ``m`` over the expected acceptance, so about ``m`` are kept.
+
+    Parameters
+    ----------
+    labels : (N,) int
+    m : int
+    rng : numpy Generator
+
+    Returns
+    -------
+    i, j : (k,) int; weight : float
+    """
+    n = len(labels)
+    _, g, size = np.unique(labels, return_inverse=True, return_counts=True)
+    order = np.argsort(g, kind="stable")
+    start = np.concatenate([[0], np.cumsum(size)[:-1]])
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n) - start[g[order]]
+    nmax = int(size.max())
+    if nmax < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), 1.0
+    accept = float(np.sum(size * (size - 1))) / (n * (nmax - 1))
+    md = int(np.ceil(m / accept))
+    i = rng.integers(0, n, md)
+    ni = size[g[i]]
+    keep = rng.random(md) * (nmax - 1) < ni - 1
+    i, ni = i[keep], ni[keep]
+    k = np.minimum((rng.random(len(i)) * (ni - 1)).astype(np.int64), ni - 2)
+    k += k >= rank[i]  # uniform over the others of the label
+    j = order[start[g[i]] + k]
+    return i, j, n * (nmax - 1) / (2.0 * md)
+
+
 class RenyiCost:
     """Rényi quadratic entropy of the compensated cloud as a function of (vx, vy).
 
@@ -235,20 +279,29 @@ class RenyiCost:
         ``N`` points vary less than all the pairs of ``max_points`` points (which share
         their points), so what a denser cloud adds is kept at the same cost. The draw is
         seeded by ``N`` (deterministic).
+    labels : (n,) int, optional
+        A label per point (its mirror window): the sum then keeps only the pairs of points
+        with the same label (drawn within labels by :func:`_draw_label_pairs` beyond
+        ``max_points``). None, or one label for every point: all pairs.
     """
 
     def __init__(self, points: ArrayLike, t_s: ArrayLike, t_ref_s: float, sigma_m: float,
                  center_velocity: np.ndarray | Sequence[float],
                  max_dv_m_s: float = 0.1, cutoff_sigmas: float = 5.0, plane: bool = True,
-                 max_points: int = 800, subsample: str = "points") -> None:
+                 max_points: int = 800, subsample: str = "points",
+                 labels: ArrayLike | None = None) -> None:
         require(subsample in ("points", "pairs"), "subsample", subsample, "points or pairs")
         p = np.asarray(points, float)
         t = np.asarray(t_s, float)
+        lab = None if labels is None else np.asarray(labels)
+        if lab is not None and (len(lab) == 0 or np.all(lab == lab[0])):
+            lab = None  # one view: every pair is within it
         sample_pairs = subsample == "pairs" and len(p) > max_points
         if len(p) > max_points and not sample_pairs:
             order = np.argsort(t, kind="stable")
             sel = order[np.linspace(0, len(p) - 1, max_points).round().astype(int)]
             p, t = p[sel], t[sel]
+            lab = None if lab is None else lab[sel]
         if plane:
             p = np.column_stack([p[:, :2], np.zeros(len(p))])
         self.n = len(p)
@@ -260,7 +313,7 @@ class RenyiCost:
         qx, qy, qz = (np.ascontiguousarray(q[:, k]) for k in range(3))
         #: weight of one pair in the sum (1: every pair within the cutoff is in the list)
         self.w = 1.0
-        if sample_pairs:
+        if sample_pairs and lab is None:
             n = self.n
             m = max_points * (max_points - 1) // 2
             rng = np.random.default_rng(n)
@@ -271,8 +324,16 @@ class RenyiCost:
             near = dx * dx + dy * dy + dz * dz <= r * r  # the cutoff, as query_pairs
             i, j, dx, dy, dz = i[near], j[near], dx[near], dy[near], dz[near]
             self.w = n * (n - 1) / (2.0 * m)
+        elif sample_pairs and lab is not None:
+            i, j, self.w = _draw_label_pairs(lab, max_points * (max_points - 1) // 2,
+                                             np.random.default_rng(self.n))
+            dx, dy, dz = qx[i] - qx[j], qy[i] - qy[j], qz[i] - qz[j]
+            near = dx * dx + dy * dy + dz * dz <= r * r
+            i, j, dx, dy, dz = i[near], j[near], dx[near], dy[near], dz[near]
         else:
             pairs = cKDTree(q).query_pairs(r, output_type="ndarray")
+            if lab is not None:
+                pairs = pairs[lab[pairs[:, 0]] == lab[pairs[:, 1]]]
             i, j = pairs[:, 0], pairs[:, 1]
             dx, dy, dz = qx[i] - qx[j], qy[i] - qy[j], qz[i] - qz[j]
         # q_i - q_j at velocity c + dw is (q_i - q_j)|_c + dw (t_j - t_i): stored once, in
@@ -394,7 +455,8 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
                   voxel_offsets: int = 1, voxel_grid: tuple[int, ...] = (17, 9, 9),
                   voxel_max_points: int | None = None,
                   renyi_method: str = "nelder-mead",
-                  renyi_subsample: str = "points") -> MotionEstimate:
+                  renyi_subsample: str = "points",
+                  labels: ArrayLike | None = None) -> MotionEstimate:
     """Eq. 13: the motion whose compensated accumulation has the least entropy.
 
     Parameters
@@ -436,6 +498,9 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
     renyi_subsample : {"points", "pairs"}
         Rényi: beyond ``max_points``, keep that many points, or keep every point and draw
         as many pairs as ``max_points`` points have (:class:`RenyiCost`).
+    labels : (n,) int, optional
+        Rényi: only pairs of points with the same label (e.g. the mirror window) enter
+        the sum (:class:`RenyiCost`); None: all pairs.
 
     Returns
     -------
@@ -458,7 +523,7 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
     cov: np.ndarray | None
     if entropy == "renyi":
         cost = RenyiCost(p, t, t_ref, sigma_m, w0, max_dv_m_s=search_m_s, plane=plane,
-                         max_points=max_points, subsample=renyi_subsample)
+                         max_points=max_points, subsample=renyi_subsample, labels=labels)
         nt = _newton(cost, w0, search_m_s / 4) if renyi_method == "newton" else None
         if nt is not None and np.linalg.norm(nt[0] - w0) <= search_m_s:
             w, fval, H = nt
@@ -473,7 +538,7 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         w = res.x
         if np.linalg.norm(w - w0) > search_m_s:  # left the region whose pairs were gathered
             cost = RenyiCost(p, t, t_ref, sigma_m, w, max_dv_m_s=search_m_s, plane=plane,
-                             max_points=max_points, subsample=renyi_subsample)
+                             max_points=max_points, subsample=renyi_subsample, labels=labels)
             res = minimize(cost, w, method="Nelder-Mead", options={"xatol": 5e-4, "fatol": 1e-6})
             w = res.x
         H = _hessian(cost, w, np.array([2e-3, 2e-3]))
