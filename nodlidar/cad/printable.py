@@ -203,13 +203,19 @@ def _section_area(shape, origin: np.ndarray, normal: np.ndarray, big: float) -> 
     return float(sum(f.Area() for f in sec.Faces()))
 
 
-def _split(shape, name: str, params: MountParams) -> list[tuple[Any, list[dict[str, Any]]]]:
-    """Cut ``shape`` (assembly coordinates) into pieces that fit the bed (half-lap joints)."""
+def _split(shape, name: str, params: MountParams
+           ) -> list[tuple[Any, list[dict[str, Any]], tuple[np.ndarray, Any, np.ndarray]]]:
+    """Cut ``shape`` (assembly coordinates) into pieces that fit the bed (half-lap joints).
+
+    Returns ``(piece, joints, (T, printed, size))`` per piece: the piece in assembly
+    coordinates, its joints and its :func:`print_orientation` (computed here anyway to
+    decide whether it fits, so :func:`print_pieces` does not orient it a second time).
+    """
     import cadquery as cq  # noqa: TID251 (lazy: CAD only)
 
     T, printed, size = print_orientation(shape, params)
     if fits_bed(size[0], size[1], params):
-        return [(shape, [])]
+        return [(shape, [], (T, printed, size))]
     # work in the print frame of this piece: plate bottom at z = 0, long side along x
     P = params
     pts = _points(printed)
@@ -219,23 +225,47 @@ def _split(shape, name: str, params: MountParams) -> list[tuple[Any, list[dict[s
     # the plate: the cross-section must be a slab from z = 0 to the plate top
     t_plate = _plate_thickness(printed)
     lap = P.lap_mm
-    best = None
-    for frac in np.linspace(0.3, 0.7, 9):
+    spans: dict[float, tuple[float, float]] = {}   # each section computed once per x
+    excesses: dict[float, float] = {}
+
+    def span(x: float) -> tuple[float, float]:
+        if x not in spans:
+            spans[x] = _section_span(printed, x, big, t_plate)
+        return spans[x]
+
+    def excess_at(x: float) -> float:
+        """Section area [mm^2] beyond a plain slab of the plate (pillars, cradles...)."""
+        if x not in excesses:
+            area = _section_area(printed, np.array([x, 0, 0]), np.array([1.0, 0, 0]), big)
+            y0, y1 = span(x)
+            excesses[x] = area - (y1 - y0) * t_plate
+        return excesses[x]
+
+    # Candidate cuts c, each judged by the sections at c, c + lap/2 and c + lap. The
+    # choice is the smallest key (material beyond the slab, halves that do not both fit
+    # the bed, distance from the middle), the first candidate on ties. The last two
+    # parts of the key need no geometry, so the candidates are visited in their order
+    # and the first one whose three sections are all plain slab wins: every candidate
+    # after it has a larger key. A candidate is out at its first section with excess
+    # (round(max(., 0), 1) is monotone, so it is > 0 for the maximum over the three
+    # sections iff it is for one of them). This takes 3 section pairs instead of 27
+    # when the middle is plain plate (issue 16: these were ~40 % of `nodlidar cad`).
+    cands = []
+    for i, frac in enumerate(np.linspace(0.3, 0.7, 9)):
         c = lo[0] + frac * length
-        xs = (c, c + lap / 2, c + lap)
-        areas = [_section_area(printed, np.array([x, 0, 0]), np.array([1.0, 0, 0]), big)
-                 for x in xs]
-        # material beyond a plain slab of the plate's thickness (pillars, cradles, bosses)
-        excess = max(a - _section_width(printed, x, big, t_plate) * t_plate
-                     for a, x in zip(areas, xs, strict=True))
         # halves that fit the bed first, then a plain plate, then the middle (balanced)
         both_fit = (fits_bed(c - lo[0] + lap, size[1], P)
                     and fits_bed(hi[0] - c, size[1], P))
-        key = (round(max(excess, 0.0), 1) > 0, not both_fit, abs(frac - 0.5))
-        if best is None or key < best[0]:
-            best = (key, c, excess)
-    assert best is not None
-    _, c, excess = best
+        cands.append(((not both_fit, abs(frac - 0.5)), i, c))
+    cands.sort()
+    c = None
+    for _, _, cand in cands:
+        if all(round(max(excess_at(x), 0.0), 1) <= 0 for x in (cand, cand + lap / 2, cand + lap)):
+            c = cand
+            break
+    if c is None:   # no plain cut: the smallest key is the first candidate (refused below)
+        c = cands[0][2]
+    excess = max(excess_at(x) for x in (c, c + lap / 2, c + lap))
     # only a plain slab of the plate may be cut: a lap through a pillar would not hold
     if t_plate < 2 * P.min_wall_mm or excess > 0.02 * length * t_plate + 1.0:
         raise ParameterError(
@@ -248,7 +278,7 @@ def _split(shape, name: str, params: MountParams) -> list[tuple[Any, list[dict[s
     a = printed.intersect(keep).clean()
     b = printed.cut(keep).clean()
     # dowels and screws through the lap, spread along the cut where the plate is
-    y0, y1 = _section_span(printed, c + lap / 2, big, t_plate)
+    y0, y1 = span(c + lap / 2)
     xm = c + lap / 2
     holes = []
     kinds = ("dowel", "screw", "screw", "dowel")
@@ -283,7 +313,7 @@ def _split(shape, name: str, params: MountParams) -> list[tuple[Any, list[dict[s
     out = []
     for piece in (a, b):
         for solid in piece.Solids():
-            out += [(s, j + [joint]) for s, j in _split(_transform(solid, Tinv), name, params)]
+            out += [(s, j + [joint], o) for s, j, o in _split(_transform(solid, Tinv), name, params)]
     return out
 
 
@@ -311,12 +341,6 @@ def _section_span(printed, x: float, big: float, t: float) -> tuple[float, float
     return (min(ys), max(ys)) if ys else (0.0, 0.0)
 
 
-def _section_width(printed, x: float, big: float, t: float) -> float:
-    """Width [mm] of the plate's section at ``x``."""
-    lo, hi = _section_span(printed, x, big, t)
-    return hi - lo
-
-
 def print_pieces(model: Any, params: MountParams | None = None, *,
                  refused: list[dict[str, str]] | None = None) -> list[PrintPiece]:
     """Every printable part of ``model``, split to fit the bed, in print orientation.
@@ -336,9 +360,8 @@ def print_pieces(model: Any, params: MountParams | None = None, *,
                 raise
             refused.append({"part": part.name, "reason": str(exc)})
             continue
-        for i, (shape, joints) in enumerate(pieces, start=1):
+        for i, (shape, joints, (T, printed, size)) in enumerate(pieces, start=1):
             name = part.name if len(pieces) == 1 else f"{part.name}_{i}"
-            T, printed, size = print_orientation(shape, P)
             if not fits_bed(size[0], size[1], P):  # pragma: no cover - _split guarantees it
                 raise ParameterError("cad.bed_x_mm/bed_y_mm", (P.bed_x_mm, P.bed_y_mm),
                                      f"a bed that holds {name} ({size[0]:.0f} x {size[1]:.0f} mm)")
