@@ -518,3 +518,52 @@ def test_kernel_projection_is_beam_model_points():
         sel = pc.lifted == lifted
         want = bm.points(pc.step[sel], pc.range_m[sel], pc.nod_rad[sel])
         assert_allclose(pc.xyz[sel], want, atol=1e-12, rtol=0)
+
+
+_LIVE_AFTER_WARM_UP = r"""
+import sys
+import numpy as np
+from nodlidar.runtime import _assembly_kernel as K
+from nodlidar.runtime.assembly import AssemblyModel, PoseTrack, ScanBatch, assemble, warm_up
+from nodlidar.solver import solve
+from nodlidar.spec import load_design
+
+model = AssemblyModel.from_design(solve(load_design(sys.argv[1])))
+assert not K.assemble_points.signatures
+warm_up(model)
+n_sig = len(K.assemble_points.signatures)
+lidar = model.lidar
+rng = np.random.default_rng(3)
+batch = ScanBatch.from_arrays(lidar.steps, rng.uniform(0.2, 5.0, (4, lidar.n_steps)),
+                              [0.0, 0.1, 0.2, 0.3])
+t = np.arange(-0.1, 0.6, 0.002)
+nod = (t, 0.3 * np.sin(t))                                     # servo samples, as live
+lift = (t, np.linspace(model.lift_left.deployed_rad, model.lift_left.lifted_rad, t.size))
+T = np.eye(4)
+T[:3, 3] = (0.1, 0.0, 0.3)
+poses = PoseTrack([0.0, 0.5], np.stack([np.eye(4), T]))
+assemble(model, batch, nod, mirror_left=lift, mirror_right="lifted")
+assemble(model, batch, nod, frame="world", robot_from_sensor=T, world_from_robot=poses)
+one = ScanBatch(batch.steps[:lidar.n_steps].astype(np.int32), batch.ranges_m[:lidar.n_steps],
+                batch.scan[:lidar.n_steps], batch.scan_time_s[:1])      # a bag's one scan
+assemble(model, one, nod, nod_outside="clamp")
+assert len(K.assemble_points.signatures) == n_sig == 1, K.assemble_points.signatures
+print("one signature")
+"""
+
+
+def test_warm_up_compiles_the_one_version_live_captures_use():
+    """numba compiles at the first call (3-6 s the first time on a machine): inside a live
+    capture that stalled the loop reading the lidar (a first ``nodlidar record`` on an
+    empty cache dropped 62 scans). ``warm_up`` (called by Session.open) must leave
+    nothing to compile for live-shaped calls: servo samples, lift samples moving, the
+    world frame with a pose track, a driver's int32 steps. A fresh interpreter, so no
+    earlier test has compiled anything."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", _LIVE_AFTER_WARM_UP,
+                           str(ROOT / "design" / "urg04lx-paper.toml")],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "one signature" in proc.stdout

@@ -47,7 +47,8 @@ if TYPE_CHECKING:
     from ..solver import Design
 
 __all__ = ["FRAMES", "PointCloud", "ScanBatch", "AngleSamples", "PoseTrack", "AssemblyModel",
-           "AssemblyStats", "assemble", "DEPLOYED", "LIFTED", "BETWEEN", "mirror_state"]
+           "AssemblyStats", "assemble", "warm_up", "DEPLOYED", "LIFTED", "BETWEEN",
+           "mirror_state"]
 
 FRAMES = ("sensor", "robot", "world")
 #: What :func:`~nodlidar.runtime.servo_angles.interpolate_angle` does outside the samples.
@@ -480,6 +481,21 @@ class AssemblyStats:
     mirror_moving: int = 0
     blocked: int = 0
     points: int = 0
+
+
+def warm_up(model: AssemblyModel) -> None:
+    """Compile (or load from numba's cache) the assembly kernel now, not at the first scan.
+
+    numba compiles :func:`~nodlidar.runtime._assembly_kernel.assemble_points` at its first
+    call: ~3-6 s the first time on a machine, ~0.3 s to load from the cache in a new
+    process. Inside a live capture that stalls the loop that reads the lidar (a first
+    recording on a fresh install dropped 62 of its first scans), so
+    :meth:`~nodlidar.runtime.session.Session.open` calls this before streaming. Every
+    argument of the kernel goes through :func:`_plain`, so one call compiles the only
+    version later calls use (one scan of one beam, a fixed nod; the result is discarded).
+    """
+    lidar = model.lidar
+    assemble(model, ScanBatch.from_arrays([lidar.step_min], [[1.0]], [0.0]), 0.0)
 
 
 def mirror_state(angle_rad: ArrayLike, profile: MirrorLiftProfile,

@@ -38,7 +38,7 @@ from .actuators import (
     PositionSampler,
     lift_profiles,
 )
-from .assembly import AssemblyModel, PointCloud, ScanBatch, assemble
+from .assembly import AssemblyModel, PointCloud, ScanBatch, assemble, warm_up
 
 if TYPE_CHECKING:
     from ..calibration.calfile import Calibration
@@ -187,6 +187,8 @@ class Session:
             perts, cal_id = cal.perturbations, cal.id
         self.model = AssemblyModel.from_design(design, perts, cal_id)
         self.lift_left, self.lift_right = lift_profiles(design)
+        # the compiled kernel ready before the first scan streams in (not in its loop)
+        warm_up(self.model)
         try:
             if self.simulated:
                 from ..sim.scene import load_scene
