@@ -701,3 +701,67 @@ def test_adaptive_pairs_are_within_windows_while_the_window_is_short(monkeypatch
             assert_allclose(cost(w), ref_w if within else ref_a, atol=1e-3)
         checked["within" if within else "all"] += 1
     assert checked == {"within": 2, "all": 6}
+
+
+class _ArcSeg:
+    """Stub of Segmented: scan k, one 40-point arc of a 0.18 m cylinder centred at ``c0 + v t``
+    (the same arc every scan, each point at its own beam time ``t``), or no object."""
+
+    def __init__(self, k, c0, v, seen=True):
+        t = k * 0.1 + np.linspace(0, 0.09, 40)
+        ang = np.linspace(-1.0, 1.0, 40)
+        xy = np.asarray(c0) + np.outer(t, v) + 0.18 * np.column_stack([-np.cos(ang), np.sin(ang)])
+        pts = np.column_stack([xy, np.linspace(0.2, 1.0, 40)])
+        n = 40 if seen else 0
+        self.pts, self.t = pts[:n], t[:n]
+        self.scan = ScanPoints(k, np.arange(n), self.t, np.full(n, -1), np.ones(n), self.pts,
+                               self.pts, self.pts, np.zeros(n))
+
+    def objects(self):
+        return [np.arange(len(self.t))] if len(self.t) else []
+
+
+@pytest.mark.parametrize("speed", [0.0, 1.5])
+def test_a_one_scan_track_is_reacquired_after_a_gap(speed):
+    # side-by-side seed 1 (docs/tracking.md, "Per-window segmentation"): an object seen in
+    # one scan, then not for 22 scans, is 0.73 m from where it was seen (0.3 m/s) - beyond
+    # gate_m (0.6 m). With reacquire_speed_m_s=1.5 the one-scan track takes it (gate
+    # 1.5 m/s x 2.3 s); with 0 a second track is born (the identity switch). The
+    # velocity measured at the re-acquisition is checked against the displacement of the
+    # arc's centroid over the time between the two scans (independent: the arcs are the
+    # same shape, so the centroid moves exactly with the object; 1e-3 m/s is the Newton
+    # minimiser's tolerance on exact data, two orders below the 0.3 m/s measured).
+    v = np.array([-0.282, 0.103])
+    trk = Tracker(TrackerConfig(reacquire_speed_m_s=speed))
+    segs = [_ArcSeg(k, [3.3, 0.2], v, seen=k in (0, 23)) for k in range(24)]
+    for seg in segs:
+        trk.update(seg)
+    if speed == 0:
+        assert sorted(trk.tracks) == [1, 2]  # the old one coasting, a new one born
+        return
+    assert list(trk.tracks) == [1]
+    tr = trk.tracks[1]
+    assert tr.scans == [0, 23]
+    c0, c1 = (s.pts[:, :2].mean(axis=0) for s in (segs[0], segs[23]))
+    ref = (c1 - c0) / (segs[23].t.mean() - segs[0].t.mean())
+    assert np.hypot(*(c1 - c0)) > TrackerConfig().gate_m  # the case the fixed gate loses
+    assert_allclose(ref, v, atol=1e-12)  # the independent reference is the true velocity
+    assert_allclose(tr.motion.velocity, ref, atol=1e-3)
+
+
+@pytest.mark.parametrize("factor, same", [(0.95, True), (1.05, False)])
+def test_reacquisition_gate_is_the_speed_times_the_gap(factor, same):
+    # a one-scan track at the origin's arc; 10 scans later an arc whose centroid is
+    # factor x reacquire_speed_m_s x (time between the centroids) away: taken just inside,
+    # a new track just outside (the chi-square gate passes at 0.95: the birth velocity's
+    # 0.5 m/s sigma gives d^2 ~ 3.3 < 13.8)
+    speed = 1.0
+    dt = 1.0  # centroid times: both arcs span 0.09 s of one scan, 10 scans apart
+    v_jump = factor * speed * dt
+    trk = Tracker(TrackerConfig(reacquire_speed_m_s=speed))
+    trk.update(_ArcSeg(0, [3.0, 0.0], [0.0, 0.0]))
+    for k in range(1, 10):
+        trk.update(_ArcSeg(k, [3.0, 0.0], [0.0, 0.0], seen=False))
+    trk.update(_ArcSeg(10, [3.0 - v_jump, 0.0], [0.0, 0.0]))
+    assert (sorted(trk.tracks) == [1]) is same
+

@@ -136,6 +136,17 @@ class TrackerConfig:
         ``"adaptive"``: the scans in the track's window from which all pairs are taken (6:
         the diagnosis measured the bias between windows at 2-4 scans, -15 to -1 deg, and
         the terms between windows helping at 6 scans, -0.13 deg with them, -0.46 without).
+    reacquire_speed_m_s : float
+        A track with no velocity yet (seen in one scan only) may take a cluster up to
+        ``max(gate_m, reacquire_speed_m_s * dt)`` from where it was seen, ``dt`` the time
+        since then [s]; 0: ``gate_m`` always. Its prediction is where it was seen (the birth
+        velocity is zero), so after a gap the fixed gate loses it even though the object is
+        still there: with mirrors and per-window segmentation, side-by-side seed 1 finds the
+        right person at scan 3, 3.25 m out, then not again until scan 26 (coming towards
+        the sensor in its own shadow, then the nod's blind part): 0.75 m away, beyond the
+        0.6 m gate, so a new track took the person (an identity switch). The chi-square
+        gate still applies (the birth velocity's 0.5 m/s sigma grows the predicted
+        position's covariance with ``dt``).
     renyi_method : {"newton", "nelder-mead"}
         Rényi minimiser (:func:`refine_motion`); Newton's method on the closed-form
         derivatives takes a few passes over the pairs instead of ~50 (same minimum within
@@ -171,6 +182,7 @@ class TrackerConfig:
     renyi_subsample: str = "pairs"
     renyi_pairs: str = "adaptive"
     renyi_all_pairs_scans: int = 6
+    reacquire_speed_m_s: float = 0.0
 
     def __post_init__(self) -> None:
         require(self.confirm_scans >= 2, "confirm_scans", self.confirm_scans, ">= 2")
@@ -187,6 +199,8 @@ class TrackerConfig:
         require(self.velocity_fusion in FUSIONS, "velocity_fusion",
                 self.velocity_fusion, ", ".join(FUSIONS))
         require(self.gate_m > 0, "gate_m", self.gate_m, "> 0 m")
+        require(self.reacquire_speed_m_s >= 0, "reacquire_speed_m_s", self.reacquire_speed_m_s,
+                ">= 0 m/s")
         require(self.gate_chi2 > 0, "gate_chi2", self.gate_chi2, "> 0")
         require(self.merge_m >= 0, "merge_m", self.merge_m, ">= 0 m")
         require(self.coalesce_m >= 0, "coalesce_m", self.coalesce_m, ">= 0 m")
@@ -338,6 +352,15 @@ class Tracker:
         pred, _, _ = self._filters()
         return pred.predict(tr.state, timestamp=_stamp(t))
 
+    def _gate_m(self, tr: _Track, t: float) -> float:
+        """Distance gate [m] of ``tr`` for a cluster at time ``t`` [s]: ``gate_m``, grown
+        to ``reacquire_speed_m_s * (t - last seen)`` while the track has no velocity
+        (:class:`TrackerConfig`)."""
+        cfg = self.config
+        if tr.motion is None and cfg.reacquire_speed_m_s > 0:
+            return max(cfg.gate_m, cfg.reacquire_speed_m_s * (t - tr.t_centroids[-1]))
+        return cfg.gate_m
+
     def _velocity_noise(self, mo: MotionEstimate) -> np.ndarray:
         """Measurement noise (2, 2) [m^2/s^2] of a window's velocity estimate ``mo``.
 
@@ -478,7 +501,7 @@ class Tracker:
                 m = np.asarray(prior.state_vector, float).ravel()
                 P = np.asarray(prior.covar, float)
                 d = c - m[[0, 2]]
-                if float(np.hypot(*d)) > cfg.gate_m:
+                if float(np.hypot(*d)) > self._gate_m(tr, t):
                     continue
                 S = P[np.ix_([0, 2], [0, 2])] + np.eye(2) * cfg.position_sigma_m ** 2
                 d2 = float(d @ np.linalg.solve(S, d))
