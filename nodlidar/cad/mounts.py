@@ -612,10 +612,25 @@ def _cq():
 
 
 def _prism(cq, poly_xy: np.ndarray, z0: float, z1: float):
-    """Vertical prism over a plan polygon (mm)."""
-    pts = [tuple(map(float, p)) for p in poly_xy]
-    return (cq.Workplane("XY", origin=(0, 0, float(z0))).polyline(pts).close()
-            .extrude(float(z1 - z0)).val())
+    """Vertical prism over a plan polygon ``(n, 2)`` from ``z0`` to ``z1`` (mm).
+
+    The steps of ``cq.Workplane("XY", origin=(0, 0, z0)).polyline(pts).close()
+    .extrude(z1 - z0).val()`` made directly on the shapes (the same OCCT calls with the
+    same arguments, so the same solid), without the Workplane objects whose Python
+    bookkeeping was half of the part build's time outside the booleans (issue 16).
+    """
+    plane = cq.Plane.named("XY", origin=(0, 0, float(z0)))
+    pts = [plane.toWorldCoords(tuple(map(float, p))) for p in poly_xy]
+    edges = [cq.Edge.makeLine(a, b) for a, b in zip(pts[:-1], pts[1:], strict=True)]
+    # close(): from the last edge's end to the first edge's start, through plane coordinates
+    end = plane.toLocalCoords(edges[-1].endPoint())
+    start = plane.toLocalCoords(edges[0].startPoint())
+    if end.sub(start).Length > 1e-6:
+        edges.append(cq.Edge.makeLine(plane.toWorldCoords(end), plane.toWorldCoords(start)))
+    face = cq.Face.makeFromWires(cq.Wire.assembleEdges(edges), []).Faces()[0]
+    solid = cq.Solid.extrudeLinear(face, plane.zDir.multiply(float(z1 - z0)), taper=0.0)
+    # extrude(): the solid fused with no base (a one-solid compound gives the solid back), cleaned
+    return cq.Compound.makeCompound([solid]).fuse().clean()
 
 
 def _axis_box(cq, ax: HingeAxis, u: tuple[float, float], e: tuple[float, float],
