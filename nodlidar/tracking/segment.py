@@ -85,7 +85,10 @@ class SegmentConfig:
         With one window (lifted) it is the cluster's test, unchanged. Off by default: it
         finds movers sooner in time, but measured over the scenes it also breaks an
         identity and delays convergence counted in scans with the object (docs/tracking.md,
-        "Along the line of sight").
+        "Along the line of sight"). Re-measured with the adaptive pairs: the identity is
+        kept with ``TrackerConfig.reacquire_speed_m_s``, but the paper case and four other
+        movers still become later than lifted by count (docs/tracking.md, "Per-window
+        segmentation and re-acquisition").
     carve_no_return_m : float
         A beam with no return carves this far [m]. The URG reports "nothing within range"
         (DMAX 5.6 m) as an error code, so the space in front is free; the default stays

@@ -26,6 +26,8 @@ axis, :class:`~stonesoup.predictor.kalman.KalmanPredictor`,
    a track unseen for more than ``max_missed`` scans ends (the default 25 outlasts the nod's
    blind interval, ~8 scans on the paper's ramp, and one person walking behind another:
    16 scans in ``design/scenes/track-crossing.toml``; the track coasts on its prediction).
+   A track seen in one scan only (no velocity) may, with ``reacquire_speed_m_s``, take a
+   cluster farther than ``gate_m`` after a gap (opt-in; :class:`TrackerConfig`).
 
 The measurement of a track in a scan is the ground-plane centroid of its points and, from
 the second scan on, the velocity from the entropy refinement (:func:`refine_motion`, eqs
