@@ -393,13 +393,10 @@ class SceneSimulator:
         compiles one version per argument type, read-only included, and a second version
         compiled mid-run (mirrors starting to move) would stall the emulator's thread."""
         hit = self.head_rays(steps, lift_left, lift_right)
-        for a in hit:
+        out = (*hit, hit[0] - self.pivot)
+        for a in out:
             a.setflags(write=False)
-        if len(hit) == 6:
-            rel = hit[0] - self.pivot
-            rel.setflags(write=False)
-            hit = (*hit, rel)
-        return hit
+        return out
 
     def to_world(self, p_head: np.ndarray, d_head: np.ndarray, nod_rad: np.ndarray,
                  t_s: np.ndarray, _rel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
