@@ -24,6 +24,7 @@ mirror, with the pocket clearance), servos, screws, dowels. It needs no cadquery
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -241,31 +242,14 @@ def _split(shape, name: str, params: MountParams
             excesses[x] = area - (y1 - y0) * t_plate
         return excesses[x]
 
-    # Candidate cuts c, each judged by the sections at c, c + lap/2 and c + lap. The
-    # choice is the smallest key (material beyond the slab, halves that do not both fit
-    # the bed, distance from the middle), the first candidate on ties. The last two
-    # parts of the key need no geometry, so the candidates are visited in their order
-    # and the first one whose three sections are all plain slab wins: every candidate
-    # after it has a larger key. A candidate is out at its first section with excess
-    # (round(max(., 0), 1) is monotone, so it is > 0 for the maximum over the three
-    # sections iff it is for one of them). This takes 3 section pairs instead of 27
-    # when the middle is plain plate (issue 16: these were ~40 % of `nodlidar cad`).
     cands = []
-    for i, frac in enumerate(np.linspace(0.3, 0.7, 9)):
+    for frac in np.linspace(0.3, 0.7, 9):
         c = lo[0] + frac * length
         # halves that fit the bed first, then a plain plate, then the middle (balanced)
         both_fit = (fits_bed(c - lo[0] + lap, size[1], P)
                     and fits_bed(hi[0] - c, size[1], P))
-        cands.append(((not both_fit, abs(frac - 0.5)), i, c))
-    cands.sort()
-    c = None
-    for _, _, cand in cands:
-        if all(round(max(excess_at(x), 0.0), 1) <= 0 for x in (cand, cand + lap / 2, cand + lap)):
-            c = cand
-            break
-    if c is None:   # no plain cut: the smallest key is the first candidate (refused below)
-        c = cands[0][2]
-    excess = max(excess_at(x) for x in (c, c + lap / 2, c + lap))
+        cands.append((float(c), both_fit, float(frac)))
+    c, excess = _choose_cut(cands, excess_at, lap)
     # only a plain slab of the plate may be cut: a lap through a pillar would not hold
     if t_plate < 2 * P.min_wall_mm or excess > 0.02 * length * t_plate + 1.0:
         raise ParameterError(
@@ -315,6 +299,32 @@ def _split(shape, name: str, params: MountParams
         for solid in piece.Solids():
             out += [(s, j + [joint], o) for s, j, o in _split(_transform(solid, Tinv), name, params)]
     return out
+
+
+def _choose_cut(cands: list[tuple[float, bool, float]], excess_at: Callable[[float], float],
+                lap: float) -> tuple[float, float]:
+    """The lap joint's cut ``(c, excess)`` among candidates ``(c [mm], both_fit, frac)``.
+
+    Each candidate is judged by the sections at ``c``, ``c + lap/2`` and ``c + lap``
+    (``excess_at(x)``: section area beyond a plain slab of the plate [mm^2]); the choice is
+    the smallest key ``(round(max(excess, 0), 1) > 0, not both_fit, |frac - 0.5|)`` with
+    ``excess`` the largest of the three, the first candidate on ties. The last two parts
+    of the key need no geometry, so the candidates are visited in their order and the
+    first one whose three sections are all plain slab wins: every candidate after it has a
+    larger key. A candidate is out at its first section with excess (``round(max(., 0),
+    1)`` is monotone, so it is > 0 for the maximum iff for one of the three). This takes
+    3 sections instead of 27 when the middle is plain plate (issue 16: the sections were
+    ~40 % of ``nodlidar cad``); ``excess`` is the chosen candidate's, as before.
+    """
+    order = sorted(((not fit, abs(frac - 0.5)), i, c) for i, (c, fit, frac) in enumerate(cands))
+    chosen = None
+    for _, _, cand in order:
+        if all(round(max(excess_at(x), 0.0), 1) <= 0 for x in (cand, cand + lap / 2, cand + lap)):
+            chosen = cand
+            break
+    if chosen is None:   # no plain cut: the smallest key is the first in that order
+        chosen = order[0][2]
+    return chosen, max(excess_at(x) for x in (chosen, chosen + lap / 2, chosen + lap))
 
 
 def _plate_thickness(printed) -> float:
