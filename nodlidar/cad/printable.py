@@ -314,7 +314,7 @@ def _choose_cut(cands: list[tuple[float, bool, float]], excess_at: Callable[[flo
     larger key. A candidate is out at its first section with excess (``round(max(., 0),
     1)`` is monotone, so it is > 0 for the maximum iff for one of the three). This takes
     3 sections instead of 27 when the middle is plain plate (issue 16: the sections were
-    ~40 % of ``nodlidar cad``); ``excess`` is the chosen candidate's, as before.
+    ~30 % of the paper build's export); ``excess`` is the chosen candidate's, as before.
     """
     order = sorted(((not fit, abs(frac - 0.5)), i, c) for i, (c, fit, frac) in enumerate(cands))
     chosen = None
