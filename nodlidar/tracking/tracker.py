@@ -325,8 +325,14 @@ class Tracker:
         self._range_sigma = range_sigma
         self._segmenter: OnlineSegmenter | None = None
         self._kf: tuple[Any, Any, Any] | None = None  # predictor, updater, LinearGaussian
+        # Stone Soup (with the scipy.stats it imports: 0.4-0.9 s) loaded now, not at the
+        # first object a live tracker sees - that update took 430 ms, four scan periods
+        self._filters()
+        import stonesoup.types.detection  # noqa: F401
+        import stonesoup.types.hypothesis  # noqa: F401
+        import stonesoup.types.state  # noqa: F401
 
-    # -- Stone Soup pieces (imported on first use) -------------------------------------
+    # -- Stone Soup pieces (imported by the constructor, not by `import`) ---------------
     def _filters(self):
         if self._kf is None:
             from stonesoup.models.measurement.linear import LinearGaussian
