@@ -280,6 +280,16 @@ def test_old_transform_keywords_refused_with_hint():
     assert_allclose(track.apply([0.0], np.ones((1, 3))), np.ones((1, 3)), atol=0, rtol=0)
     with pytest.raises(TypeError, match="world_from_robot"):
         PoseTrack([0.0])
+    # the old attribute answers too, and any other missing one as Python would
+    with pytest.raises(AttributeError, match="world2robot was renamed world_from_robot"):
+        track.world2robot  # noqa: B018
+    with pytest.raises(AttributeError, match="no attribute 'world_frm_robot'"):
+        track.world_frm_robot  # noqa: B018
+    import copy
+    import pickle
+
+    assert_allclose(pickle.loads(pickle.dumps(track)).t_s, track.t_s)  # __getattr__ safe
+    assert_allclose(copy.deepcopy(track).world_from_robot, track.world_from_robot)
 
 
 def test_pose_track_checks_every_pose():

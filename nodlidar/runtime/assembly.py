@@ -37,7 +37,7 @@ from numpy.typing import ArrayLike
 from ..beams import DIRECT, BeamColumns, BeamModel  # noqa: F401  (BeamModel: type of fields)
 from ..dynamixel import RAD_PER_TICK
 from ..errors import ParameterError, require
-from ..frames import check_transform, refuse_renamed
+from ..frames import RENAMED, check_transform, refuse_renamed, renamed_hint
 from ..geometry import CLEAR, TOL, rotate_about_axis
 from .servo_angles import MirrorLiftProfile, lift_profiles
 
@@ -252,7 +252,8 @@ class PoseTrack:
     :func:`~nodlidar.frames.check_transform`).
 
     Interpolated per query time: translation linearly, rotation by slerp; clamped outside.
-    The old keyword ``world2robot`` is refused with a hint (``TypeError``).
+    The old keyword ``world2robot`` is refused with a hint (``TypeError``), the old
+    attribute with one (``AttributeError``).
     """
 
     t_s: np.ndarray
@@ -265,6 +266,12 @@ class PoseTrack:
         object.__setattr__(self, "t_s", t_s)
         object.__setattr__(self, "world_from_robot", world_from_robot)
         self.__post_init__()
+
+    def __getattr__(self, name: str) -> Any:
+        # called only for attributes that do not exist: the old name gets the hint
+        if name in RENAMED:
+            raise AttributeError(f"PoseTrack has no attribute {name!r}: {renamed_hint(name)}")
+        raise AttributeError(f"'PoseTrack' object has no attribute {name!r}")
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, float)
