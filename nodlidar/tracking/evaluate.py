@@ -156,13 +156,13 @@ def _gospa(res: OnlineResult, c_m: float) -> float:
     from stonesoup.metricgenerator.ospametric import GOSPAMetric
     from stonesoup.types.state import State
 
-    from .tracker import _stamp
+    from .tracker import stone_soup_time
 
     metric = GOSPAMetric(p=1, c=c_m, measure=Euclidean(mapping=(0, 1)))
     out = []
     for t, conf in zip(res.scan_t_s, res.confirmed):
         pos, _ = mover_truth(res.scene, [t])
-        stamp = _stamp(t)
+        stamp = stone_soup_time(t)
         truth = [State(p[0].reshape(2, 1), timestamp=stamp) for p in pos]
         est = [State(np.array([[x], [y]]), timestamp=stamp) for _, x, y in conf]
         if not truth and not est:

@@ -56,7 +56,7 @@ if TYPE_CHECKING:
     from .scans import ScanPoints
     from .segment import OnlineSegmenter, SegmentConfig, Segmented
 
-__all__ = ["TrackerConfig", "TrackState", "Tracker", "FUSIONS"]
+__all__ = ["TrackerConfig", "TrackState", "Tracker", "FUSIONS", "stone_soup_time"]
 
 #: ``TrackerConfig.velocity_fusion`` choices
 FUSIONS = ("kalman", "window", "first", "overlap")
@@ -269,7 +269,10 @@ _BIRTH_SIGMA_V_M_S = 0.5  # velocity sigma of a new track: a person walks at mos
 _FORGET_VAR_M2_S2 = 100.0  # a prior velocity variance that carries no information (10 m/s sigma)
 
 
-def _stamp(t_s: float) -> _dt.datetime:
+def stone_soup_time(t_s: float) -> _dt.datetime:
+    """The timestamp the tracker's Stone Soup states carry for time ``t_s`` [s]: a fixed
+    epoch (2000-01-01 UTC) plus ``t_s`` (Stone Soup's models take the time between
+    states from these; the evaluation's GOSPA states use the same clock)."""
     return _EPOCH + _dt.timedelta(seconds=float(t_s))
 
 
@@ -354,11 +357,11 @@ class Tracker:
 
         sp, sv = self.config.position_sigma_m, _BIRTH_SIGMA_V_M_S
         return GaussianState(np.array([[c[0]], [0.0], [c[1]], [0.0]]),
-                             np.diag([sp ** 2, sv ** 2, sp ** 2, sv ** 2]), timestamp=_stamp(t))
+                             np.diag([sp ** 2, sv ** 2, sp ** 2, sv ** 2]), timestamp=stone_soup_time(t))
 
     def _predict(self, tr: _Track, t: float):
         pred, _, _ = self._filters()
-        return pred.predict(tr.state, timestamp=_stamp(t))
+        return pred.predict(tr.state, timestamp=stone_soup_time(t))
 
     def _gate_m(self, tr: _Track, t: float) -> float:
         """Distance gate [m] of ``tr`` for a cluster at time ``t`` [s]: ``gate_m``, grown
