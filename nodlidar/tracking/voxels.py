@@ -212,8 +212,9 @@ class VoxelMap:
         return np.unique(k)
 
     def integrate(self, scan: int, points: np.ndarray, start: np.ndarray, direction: np.ndarray,
-                  range_m: np.ndarray, offset_m: np.ndarray) -> None:
-        """Add one scan: hits from ``points`` (rows with NaN ignored) and the carved rays.
+                  range_m: np.ndarray, offset_m: np.ndarray, t_s: float = np.nan) -> None:
+        """Add one scan: hits from ``points`` (rows with NaN ignored) and the carved rays
+        (``t_s``, the scan's time, is used by :class:`WindowVoxelMap`'s static support only).
 
         Parameters
         ----------
@@ -232,9 +233,9 @@ class VoxelMap:
             self.free.add(fk, scan)
 
     def inconsistent(self, points: np.ndarray, scan: int | np.ndarray,
-                     min_scan_gap: int = 1) -> np.ndarray:
+                     min_scan_gap: int = 1, t_s: float = np.nan) -> np.ndarray:
         """(n,) bool: the voxel of each point (observed in ``scan``) was traversed in a scan at
-        least ``min_scan_gap`` before or after it."""
+        least ``min_scan_gap`` before or after it (``t_s``: see :class:`WindowVoxelMap`)."""
         keys = self.grid.keys(points)
         found, _, first, last = self.free.lookup(keys)
         k = np.asarray(scan)
@@ -256,15 +257,28 @@ class WindowVoxelMap(VoxelMap):
     than the window is forgotten: a voxel traversed more than ``window_scans`` scans ago and
     occupied now is not inconsistent - the window must outlast the nod's period (every
     height is swept again within one nod cycle; the default 60 scans is 6 s).
-    Hits are not kept (the online segmentation only asks about traversals).
+
+    **Static support** (``static_age_s`` > 0): a point is *not* inconsistent when its voxel
+    was also hit at least ``static_age_s`` before (within the window). Whatever occupies the
+    voxel now was there that long ago, so it moves slower than ``voxel / static_age_s``.
+    This is what keeps thin or edged static things (poles, table edges, door frames, a
+    person standing still) out of the dynamic set: rays pass *beside* them through the part
+    of their voxel they do not fill, so their voxels are traversed in every nod cycle, and
+    without this rule their points are inconsistent in every scan. A voxel's hits are kept
+    as one sorted key array per scan, like the traversals.
     """
 
-    def __init__(self, grid: VoxelGrid, *, window_scans: int = 60, **kw: Any) -> None:
+    def __init__(self, grid: VoxelGrid, *, window_scans: int = 60, static_age_s: float = 0.0,
+                 **kw: Any) -> None:
         super().__init__(grid, **kw)
         require(window_scans >= 1, "window_scans", window_scans, ">= 1")
+        require(static_age_s >= 0, "static_age_s", static_age_s, ">= 0 s (0: off)")
         self.window_scans = int(window_scans)
+        self.static_age_s = float(static_age_s)
         self._scans: list[int] = []
         self._keys: list[np.ndarray] = []
+        self._hit_keys: list[np.ndarray] = []  # per kept scan, sorted unique hit keys
+        self._t_s: list[float] = []  # per kept scan, its time [s]
 
     @property
     def n_keys(self) -> int:
@@ -272,16 +286,41 @@ class WindowVoxelMap(VoxelMap):
         return int(sum(len(k) for k in self._keys))
 
     def integrate(self, scan: int, points: np.ndarray, start: np.ndarray, direction: np.ndarray,
-                  range_m: np.ndarray, offset_m: np.ndarray) -> None:
+                  range_m: np.ndarray, offset_m: np.ndarray, t_s: float = np.nan) -> None:
+        """As :meth:`VoxelMap.integrate`; ``t_s`` is the scan's time [s] (static support)."""
         fk = self.free_keys(start, direction, range_m, offset_m)  # sorted, unique
         self._scans.append(int(scan))
         self._keys.append(fk)
+        if self.static_age_s > 0:
+            p = np.asarray(points, float)
+            p = p[np.all(np.isfinite(p), axis=1)]
+            self._hit_keys.append(np.unique(self.grid.keys(p)))
+            self._t_s.append(float(t_s))
         while len(self._scans) > self.window_scans:
             self._scans.pop(0)
             self._keys.pop(0)
+            if self._hit_keys:
+                self._hit_keys.pop(0)
+                self._t_s.pop(0)
+
+    def static_support(self, points: np.ndarray, t_s: float) -> np.ndarray:
+        """(n,) bool: each point's voxel was hit in a kept scan at least ``static_age_s``
+        before ``t_s`` [s] (all False when static support is off)."""
+        keys = self.grid.keys(points)
+        out = np.zeros(len(keys), bool)
+        if self.static_age_s <= 0 or not np.isfinite(t_s):
+            return out
+        for ts, hk in zip(self._t_s, self._hit_keys):
+            if not len(hk) or not ts <= t_s - self.static_age_s:
+                continue
+            i = np.minimum(np.searchsorted(hk, keys), len(hk) - 1)
+            out |= hk[i] == keys
+        return out
 
     def inconsistent(self, points: np.ndarray, scan: int | np.ndarray,
-                     min_scan_gap: int = 1) -> np.ndarray:
+                     min_scan_gap: int = 1, t_s: float = np.nan) -> np.ndarray:
+        """As :meth:`VoxelMap.inconsistent`, without the points that have static support at
+        the scan's time ``t_s`` [s] (class docstring; NaN: no static support applied)."""
         keys = self.grid.keys(points)
         k = np.asarray(scan)
         out = np.zeros(len(keys), bool)
@@ -298,6 +337,8 @@ class WindowVoxelMap(VoxelMap):
                 out |= fk[i] == keys
             else:
                 out |= far & (fk[i] == keys)
+        if out.any() and self.static_age_s > 0 and np.isfinite(t_s):
+            out &= ~self.static_support(points, t_s)
         return out
 
     def free_count(self, points: np.ndarray) -> np.ndarray:

@@ -1,0 +1,156 @@
+"""Static things in a furnished room are not movers (issue 13: "rooms with doorways and
+furniture"): the online segmentation's static support, and the evaluation of false tracks
+and of a person standing still."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nodlidar.paper import PAPER_DESIGN
+from nodlidar.solver import solve
+from nodlidar.spec import load_design
+from nodlidar.tracking.segment import OnlineSegmenter, SegmentConfig
+from nodlidar.tracking.voxels import VoxelGrid, WindowVoxelMap
+
+ROOM = "design/scenes/track-room-furniture.toml"
+
+
+@pytest.fixture(scope="module")
+def design():
+    return solve(load_design(PAPER_DESIGN))
+
+
+def _one_ray_scan(m, scan, t_s, hit):
+    """One scan of two rays along +x from the origin: a ray that stops at 1.05 m (a hit in
+    the voxel [1.0, 1.1)) when ``hit``, and one that passes through that voxel to 3 m."""
+    start = np.zeros((2, 3))
+    d = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    r = np.array([1.05 if hit else np.nan, 3.0])
+    pts = np.array([[1.05, 0.05, 0.05]]) if hit else np.zeros((0, 3))
+    m.integrate(scan, pts, start + [0, 0.05, 0.05], d, r, np.zeros(2), t_s=t_s)
+
+
+@pytest.mark.parametrize("old_hit_t, query_t, static_age, expected", [
+    (0.0, 3.0, 2.0, False),   # hit 3 s before, traversed since: static support, consistent
+    (None, 3.0, 2.0, True),   # never hit before: free, then occupied -> inconsistent
+    (0.0, 1.5, 2.0, True),    # the earlier hit is younger than the static age
+    (0.0, 3.0, 0.0, True),    # static support off: the voxel test alone
+])
+def test_static_support_of_a_voxel(old_hit_t, query_t, static_age, expected):
+    # a voxel hit at old_hit_t, traversed at t = 1 s (a ray passing beside what is in it),
+    # hit again at query_t: inconsistent only without a hit at least static_age before
+    m = WindowVoxelMap(VoxelGrid(0.1), window_scans=60, static_age_s=static_age)
+    if old_hit_t is not None:
+        _one_ray_scan(m, 0, old_hit_t, hit=True)
+    _one_ray_scan(m, 10, 1.0, hit=False)
+    _one_ray_scan(m, 20, query_t, hit=True)
+    p = np.array([[1.05, 0.05, 0.05]])
+    assert m.inconsistent(p, 20, 1, t_s=query_t)[0] == expected
+    # the hit of the query's own scan never supports itself
+    assert not m.static_support(p, query_t - 1e-9).any() or old_hit_t is not None
+
+
+def test_static_support_forgets_with_the_window():
+    # the supporting hit drops out of the window with its scan
+    m = WindowVoxelMap(VoxelGrid(0.1), window_scans=2, static_age_s=2.0)
+    _one_ray_scan(m, 0, 0.0, hit=True)
+    _one_ray_scan(m, 10, 1.0, hit=False)
+    _one_ray_scan(m, 20, 3.0, hit=True)  # scan 0 is out (window 2)
+    assert m.inconsistent(np.array([[1.05, 0.05, 0.05]]), 20, 1, t_s=3.0)[0]
+
+
+def test_static_speed_is_validated():
+    from nodlidar.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="static_speed_m_s"):
+        SegmentConfig(static_speed_m_s=-0.1)
+    assert SegmentConfig().static_age_s == pytest.approx(0.1 / 0.05)
+    assert SegmentConfig(static_speed_m_s=0.0).static_age_s == 0.0
+
+
+def _segment(design, scene, n, dep, cfg, seed=0):
+    from nodlidar.tracking.simdata import simulate_scans
+
+    scans = simulate_scans(design, n, mirrors_deployed=dep, scene=scene, seed=seed)
+    seg = OnlineSegmenter(cfg, design.lidar.range_sigma_m)
+    return [(s, seg.update(s)) for s in scans]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dep", [True, False], ids=["mirrors", "lifted"])
+def test_furniture_is_not_dynamic_after_the_first_nod_cycle(design, dep):
+    # The furnished room, 80 scans (two nod cycles of 4 s). Per scan, dynamic clusters that
+    # are mostly static world (simulator truth 0). Without static support (the segmentation
+    # before it) the pole, the table's edges, the door frame and the standing person are
+    # dynamic in every nod cycle (measured, seed 0: 1.5 clusters per scan with mirrors, 4.7
+    # lifted). With it, after the first cycle (scan >= 40; the map must have seen a surface
+    # once, 2 s before, to know it stays): none with mirrors (seeds 0-3), and lifted a few
+    # small clusters at voxel boundaries (seed 0: 1 in scans 40-79, a 5-8 point piece of
+    # the table's edge, against ~190 without). The standing person never; the walker is
+    # still found.
+    out = {}
+    for name, cfg in (("off", SegmentConfig(static_speed_m_s=0.0)), ("on", SegmentConfig())):
+        false_clusters, stander, walker = [], [], []
+        for s, g in _segment(design, ROOM, 80, dep, cfg):
+            objs = g.objects()
+            false_clusters.append(sum((s.truth_id[i] == 0).mean() > 0.5 for i in objs))
+            stander.append(bool(np.any(s.truth_id[g.dynamic] == 2)))
+            walker.append(bool(np.any(s.truth_id[g.dynamic] == 1)))
+        out[name] = (np.array(false_clusters), np.array(stander), np.array(walker))
+    f_off, st_off, _ = out["off"]
+    f_on, st_on, w_on = out["on"]
+    # the test can fail: without static support the second cycle is full of false clusters
+    assert f_off[40:].mean() > 1.0 and st_off[40:].sum() >= 5
+    if dep:
+        assert f_on[40:].sum() == 0, np.flatnonzero(f_on)
+    else:
+        assert f_on[40:].sum() <= 0.05 * f_off[40:].sum(), (f_on[40:].sum(), f_off[40:].sum())
+    assert st_on[40:].sum() == 0
+    assert w_on.sum() >= 3  # the walker is found (5-8 scans before it leaves the view)
+
+
+@pytest.mark.slow
+def test_static_support_keeps_the_slowest_mover(design):
+    # the issue's slowest mover (0.05 m/s, receding along the line of sight: it stays
+    # longest in its own voxels) is still found in nearly every scan, from the first
+    from test_tracking_scenes import _grid_scene
+
+    sc = _grid_scene(0.05, 0.0)
+    for dep in (True, False):
+        det = {}
+        for name, cfg in (("off", SegmentConfig(static_speed_m_s=0.0)), ("on", SegmentConfig())):
+            hits = [bool(np.any(s.truth_id[g.dynamic] == 1))
+                    for s, g in _segment(design, sc, 60, dep, cfg)]
+            det[name] = np.array(hits)
+        # measured (seed 0): 51 of 60 scans without static support, 48-50 with it
+        assert det["on"].sum() >= 0.9 * det["off"].sum(), (dep, det["on"].sum(), det["off"].sum())
+        assert np.flatnonzero(det["on"])[0] == np.flatnonzero(det["off"])[0]
+
+
+def test_evaluation_of_false_tracks_and_a_person_standing_still():
+    # a hand-made online result: track 1 follows the standing person (speed estimates
+    # 0.004 m/s, headings anything), track 2 is a table edge (all its points static, truth 0)
+    from nodlidar.sim.scene import scene_from_dict
+    from nodlidar.tracking.evaluate import OnlineResult, evaluate
+
+    sc = scene_from_dict({"name": "t", "mover": [
+        {"name": "stander", "radius_m": 0.18, "height_m": 1.7, "trajectory": "fixed",
+         "position_m": [2.0, 0.0, 0.0]}]})
+    res = OnlineResult(sc, True, "renyi", 0, 5)
+    rng = np.random.default_rng(0)
+    for k in range(5):
+        res.records.append({"scan": k, "track": 1, "t_s": 0.1 * k, "x_m": 2.0, "y_m": 0.0,
+                            "v_m_s": 0.004, "heading_rad": float(rng.uniform(-3, 3)),
+                            "confirmed": k >= 1, "counts": {1: 30}})
+        res.records.append({"scan": k, "track": 2, "t_s": 0.1 * k, "x_m": 1.0, "y_m": 1.0,
+                            "v_m_s": 0.3, "heading_rad": 0.0, "confirmed": k >= 1,
+                            "counts": {0: 12, 1: 1}})
+        res.scan_t_s.append(0.1 * k)
+        res.confirmed.append([])
+    ev = evaluate(res)
+    m = ev["movers"][0]
+    # judged on speed alone (no heading for a mover standing still): within 0.01 m/s from
+    # the first estimate
+    assert m["conv"] == 1 and m["final_err_heading_deg"] == 0.0
+    assert ev["false_tracks"] == 1
