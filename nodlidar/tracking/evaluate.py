@@ -22,7 +22,13 @@ live tracker reported at the time (causal):
   that are the mover's;
 * **GOSPA** (Stone Soup's :class:`~stonesoup.metricgenerator.ospametric.GOSPAMetric`,
   p = 1, c = ``gospa_c_m``, alpha = 2): per scan, the confirmed tracks' positions against
-  the movers' true positions, averaged over the scans.
+  the movers' true positions, averaged over the scans;
+* **false tracks**: confirmed tracks most of whose points are the static world (simulator
+  truth 0: walls, furniture), i.e. something static taken for a mover.
+
+A mover whose trajectory is ``fixed`` (a person standing still) has no heading: its
+estimates are judged on speed alone, and ``scans_followed`` says how often a track took it
+for a mover at all (the right answer is never).
 """
 
 from __future__ import annotations
@@ -47,7 +53,8 @@ if TYPE_CHECKING:
     from ..sim.scene import Scene
 
 __all__ = ["V_TOL_M_S", "HEADING_TOL_DEG", "mover_truth", "OnlineResult", "run_online",
-           "evaluate", "online_convergence", "compare_mirrors", "comparison_markdown"]
+           "evaluate", "online_convergence", "false_tracks", "compare_mirrors",
+           "comparison_markdown"]
 
 V_TOL_M_S = 0.01
 HEADING_TOL_DEG = 2.0
@@ -171,6 +178,21 @@ def _gospa(res: OnlineResult, c_m: float) -> float:
     return float(np.mean(out)) if out else float("nan")
 
 
+def false_tracks(res: OnlineResult) -> int:
+    """Confirmed tracks most of whose points (over all their updates) are the static world
+    (truth id 0)."""
+    static: dict[int, int] = {}
+    total: dict[int, int] = {}
+    confirmed = set()
+    for r in res.records:
+        tid = r["track"]
+        static[tid] = static.get(tid, 0) + r["counts"].get(0, 0)
+        total[tid] = total.get(tid, 0) + sum(r["counts"].values())
+        if r["confirmed"]:
+            confirmed.add(tid)
+    return int(sum(1 for t in confirmed if 2 * static[t] > total[t]))
+
+
 def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
     """Metrics of one online run (module docstring): per mover, and GOSPA."""
     movers = []
@@ -202,8 +224,11 @@ def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
             vt = vel[k]
             v = np.array([r["v_m_s"] for r in seq])
             h = np.array([r["heading_rad"] for r in seq])
-            ev = v - np.hypot(vt[:, 0], vt[:, 1])
+            speed = np.hypot(vt[:, 0], vt[:, 1])
+            ev = v - speed
             eh = (np.degrees(h - np.arctan2(vt[:, 1], vt[:, 0])) + 180.0) % 360.0 - 180.0
+            # a mover standing still has no heading: judged on speed alone
+            eh = np.where(speed > 0, eh, np.where(np.isfinite(v), 0.0, np.nan))
             row["conv"] = online_convergence(ev, eh)
             if row["conv"] is not None:
                 # the same moment as a scan number of the run (1-based): time, not count
@@ -216,6 +241,7 @@ def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
     return {"config": "mirrors" if res.mirrors_deployed else "lifted", "entropy": res.entropy,
             "seed": res.seed, "scans": res.n_scans, "movers": movers,
             "gospa_m": round(_gospa(res, gospa_c_m), 4),
+            "false_tracks": false_tracks(res),
             "update_ms_median": round(float(np.median(upd)), 2) if len(upd) else None,
             "update_ms_max": round(float(np.max(upd)), 2) if len(upd) else None}
 
@@ -272,6 +298,8 @@ def summary_rows(results: list[dict]) -> list[dict]:
             row[f"max_err_heading_{cfg}"] = max(eh) if eh else None
             g = [r["gospa_m"] for r in rs]
             row[f"gospa_{cfg}"] = round(float(np.mean(g)), 3) if g else None
+            ft = [r.get("false_tracks", 0) for r in rs]
+            row[f"false_tracks_{cfg}"] = int(sum(ft))
         rows.append(row)
     return rows
 
