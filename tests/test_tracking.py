@@ -614,6 +614,43 @@ def test_renyi_over_pairs_of_one_window():
     assert one(vel + 0.01) == none(vel + 0.01)
 
 
+def test_labels_that_never_span_two_scans_do_not_decide_the_motion():
+    # issue 13, a scene with three people: a new track saw one person through mirror
+    # window 3 in one scan (6 points) and directly the next time (6 points). Within-label
+    # pairs were then all from one moment, the Rényi cost flat in the velocity, and the
+    # estimate 201 m/s (the track lost the person). Such labels are ignored: all pairs.
+    from nodlidar.tracking.motion import labels_observe_motion
+
+    vel = np.array([0.0, 0.64])
+    ang = np.linspace(np.pi / 2, 3 * np.pi / 2, 6)  # the front half, facing the sensor
+    arc = 0.18 * np.column_stack([np.cos(ang), np.sin(ang)])
+    t0 = np.linspace(0.0, 0.0005, 6)  # beam times within one scan [s]
+    t1 = 0.5 + t0
+    P = np.vstack([np.column_stack([np.array([3.0, 0.0]) + arc + np.outer(t, vel),
+                                    np.full(6, 0.8)]) for t in (t0, t1)])
+    T = np.r_[t0, t1]
+    lab = np.r_[np.full(6, 3), np.full(6, -1)]
+    assert not labels_observe_motion(lab, T)
+    # why: within those labels the cost does not depend on the velocity at all
+    flat = RenyiCost(P, T, T.max(), 0.02, vel, max_dv_m_s=2.0, max_points=100, labels=lab)
+    assert abs(flat(vel) - flat(vel + [0.5, -0.3])) < 1e-3
+    guess = coarse_motion(np.array([P[:6, :2].mean(0), P[6:, :2].mean(0)]),
+                          np.array([t0.mean(), t1.mean()]))
+    for method in ("newton", "nelder-mead"):
+        est = refine_motion(P, T, guess, labels=lab, renyi_method=method,
+                            renyi_subsample="pairs", max_points=300, n_scans=2)
+        # all pairs: the two arcs align at the true motion (noise-free, pure translation;
+        # 5 mm/s is half the tracker's tolerance)
+        assert_allclose(est.velocity, vel, atol=0.005)
+        assert_allclose(est.velocity, refine_motion(P, T, guess, renyi_method=method,
+                                                    renyi_subsample="pairs", max_points=300,
+                                                    n_scans=2).velocity, atol=1e-9)
+    # a label that spans both moments keeps its meaning
+    lab2 = np.r_[np.full(6, 3), np.full(3, 3), np.full(3, -1)]
+    assert labels_observe_motion(lab2, T)
+    assert labels_observe_motion(np.zeros(3, int), np.zeros(3))  # one moment: nothing to say
+
+
 def test_wide_kernel_reads_a_moving_cylinder_slow(design):
     # cause 2's "1-2 % slow reading" (docs/tracking.md, "Along the line of sight"): on the
     # analytic scene with no range noise (independent of the simulator), a cylinder of

@@ -448,6 +448,32 @@ def _hessian(f, x, h):
     return H
 
 
+def labels_observe_motion(labels: ArrayLike, t_s: ArrayLike, min_fraction: float = 0.25) -> bool:
+    """Whether the pairs within ``labels`` observe the motion of points at times ``t_s``.
+
+    The Rényi sum over pairs within labels depends on the velocity only through the time
+    differences of those pairs. When every label's points are from (nearly) one moment -
+    a new track seen through one mirror window in one scan and through another in the
+    next - the cost is flat in the velocity and its minimiser wanders off (measured: a
+    person seen through window 3 (6 points) and then directly (6 points) was given
+    201 m/s, and the track lost its person). True when some label's points span at least
+    ``min_fraction`` of all the points' time span (or the points are all from one moment).
+
+    labels, t_s : (n,) arrays. Returns a bool.
+    """
+    lab = np.asarray(labels)
+    t = np.asarray(t_s, float)
+    span = float(np.ptp(t)) if len(t) else 0.0
+    if span <= 0 or len(lab) != len(t):
+        return True
+    _, g = np.unique(lab, return_inverse=True)
+    lo = np.full(g.max() + 1, np.inf)
+    hi = np.full(g.max() + 1, -np.inf)
+    np.minimum.at(lo, g, t)
+    np.maximum.at(hi, g, t)
+    return bool(np.max(hi - lo) >= min_fraction * span)
+
+
 def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
                   entropy: str = "renyi", t_ref_s: float | None = None, sigma_m: float = 0.02,
                   voxel_m: float = 0.03, search_m_s: float = 0.08, n_scans: int = 0,
@@ -500,7 +526,10 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         as many pairs as ``max_points`` points have (:class:`RenyiCost`).
     labels : (n,) int, optional
         Rényi: only pairs of points with the same label (e.g. the mirror window) enter
-        the sum (:class:`RenyiCost`); None: all pairs.
+        the sum (:class:`RenyiCost`); None: all pairs. Ignored (all pairs) when no label's
+        points span at least a quarter of the points' time span
+        (:func:`labels_observe_motion`): the pairs they allow would leave the velocity
+        unobserved.
 
     Returns
     -------
@@ -520,6 +549,8 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
     require(len(p) >= 3, "points", len(p), ">= 3")
     t_ref = float(t.max()) if t_ref_s is None else float(t_ref_s)
     w0 = guess.velocity
+    if labels is not None and not labels_observe_motion(labels, t):
+        labels = None
     cov: np.ndarray | None
     if entropy == "renyi":
         cost = RenyiCost(p, t, t_ref, sigma_m, w0, max_dv_m_s=search_m_s, plane=plane,
