@@ -27,7 +27,9 @@ axis, :class:`~stonesoup.predictor.kalman.KalmanPredictor`,
    blind interval, ~8 scans on the paper's ramp, and one person walking behind another:
    16 scans in ``design/scenes/track-crossing.toml``; the track coasts on its prediction).
    A track seen in one scan only (no velocity) may, with ``reacquire_speed_m_s``, take a
-   cluster farther than ``gate_m`` after a gap (opt-in; :class:`TrackerConfig`).
+   cluster farther than ``gate_m`` after a gap (opt-in; :class:`TrackerConfig`). A moving
+   track whose object turned (``turn_reach_m``: outside the constant-velocity gate but near
+   where it was last seen) keeps its identity and starts its motion afresh.
 
 The measurement of a track in a scan is the ground-plane centroid of its points and, from
 the second scan on, the velocity from the entropy refinement (:func:`refine_motion`, eqs
@@ -149,6 +151,18 @@ class TrackerConfig:
         0.6 m gate, so a new track took the person (an identity switch). The chi-square
         gate still applies (the birth velocity's 0.5 m/s sigma grows the predicted
         position's covariance with ``dt``).
+    turn_reach_m : float
+        A track with a velocity, seen in one of the last ``turn_scans`` scans, may take a
+        cluster that fails its constant-velocity gates but lies within ``turn_reach_m`` +
+        its speed x the time since it was last seen of its last centroid: the object
+        turned or stopped (a person pacing, a robot reversing). The pair costs more than
+        any gated one (``gate_chi2`` + (distance / reach)^2), so the assignment prefers
+        the motion model; when it wins, the track's motion starts afresh from that
+        cluster (window emptied, velocity prior of a birth) and keeps its id. Measured
+        before: a 1.0 m/s mover reversing on its 3 m leg overshot the gate within two
+        scans and got a new track at every turn. 0 turns it off.
+    turn_scans : int
+        See ``turn_reach_m``.
     renyi_method : {"newton", "nelder-mead"}
         Rényi minimiser (:func:`refine_motion`); Newton's method on the closed-form
         derivatives takes a few passes over the pairs instead of ~50 (same minimum within
@@ -181,6 +195,8 @@ class TrackerConfig:
     warm_voxel_grid: tuple[int, ...] = (9, 9, 9)
     velocity_fusion: str = "overlap"
     renyi_method: str = "newton"
+    turn_reach_m: float = 0.15
+    turn_scans: int = 3
     renyi_subsample: str = "pairs"
     renyi_pairs: str = "adaptive"
     renyi_all_pairs_scans: int = 6
@@ -207,6 +223,8 @@ class TrackerConfig:
         require(self.merge_m >= 0, "merge_m", self.merge_m, ">= 0 m")
         require(self.coalesce_m >= 0, "coalesce_m", self.coalesce_m, ">= 0 m")
         require(self.share_m >= 0, "share_m", self.share_m, ">= 0 m")
+        require(self.turn_reach_m >= 0, "turn_reach_m", self.turn_reach_m, ">= 0 m (0: off)")
+        require(self.turn_scans >= 1, "turn_scans", self.turn_scans, ">= 1")
         require(self.window_scans >= 2, "window_scans", self.window_scans, ">= 2")
         require(self.max_points >= 3 and self.voxel_max_points >= 3, "max_points",
                 (self.max_points, self.voxel_max_points), ">= 3 points")
@@ -291,6 +309,7 @@ class _Track:
     motion: MotionEstimate | None = None
     coarse: MotionEstimate | None = None
     state: Any = None  # stonesoup GaussianState (x, vx, y, vy)
+    start: int = 0  # index in the lists where the current motion starts (after a turn)
 
     @property
     def cov(self) -> np.ndarray:
@@ -372,6 +391,15 @@ class Tracker:
             return max(cfg.gate_m, cfg.reacquire_speed_m_s * (t - tr.t_centroids[-1]))
         return cfg.gate_m
 
+    def _turn_reach_m(self, tr: _Track, scan: int, t: float) -> float:
+        """How far [m] from its last centroid a cluster may be for ``tr`` to take it as
+        having turned (``TrackerConfig.turn_reach_m``; 0: not eligible)."""
+        cfg = self.config
+        if cfg.turn_reach_m <= 0 or tr.motion is None or scan - tr.last_scan > cfg.turn_scans:
+            return 0.0
+        x = tr.x
+        return cfg.turn_reach_m + float(np.hypot(x[2], x[3])) * max(t - tr.t_centroids[-1], 0.0)
+
     def _velocity_noise(self, mo: MotionEstimate) -> np.ndarray:
         """Measurement noise (2, 2) [m^2/s^2] of a window's velocity estimate ``mo``.
 
@@ -450,23 +478,25 @@ class Tracker:
     def _estimate(self, tr: _Track) -> None:
         """Entropy refinement of the track's window (its velocity measurement)."""
         cfg = self.config
-        if len(tr.scans) < 2:
+        w0 = max(tr.start, len(tr.scans) - cfg.window_scans)  # the window, since any turn
+        n_seg = len(tr.scans) - tr.start
+        if n_seg < 2:
             return
-        C = np.array(tr.centroids[-cfg.window_scans:])
-        T = np.array(tr.t_centroids[-cfg.window_scans:])
+        C = np.array(tr.centroids[w0:])
+        T = np.array(tr.t_centroids[w0:])
         if np.ptp(T) <= 0:
             return
         coarse = tr.coarse = coarse_motion(C, T)
-        P = np.concatenate(tr.points[-cfg.window_scans:])
-        Tp = np.concatenate(tr.times[-cfg.window_scans:])
+        P = np.concatenate(tr.points[w0:])
+        Tp = np.concatenate(tr.times[w0:])
         if len(P) < 3:
             return
         # the Rényi sum over pairs of points seen through the same mirror window
         # (TrackerConfig.renyi_pairs; "adaptive": only while the window is short)
         within = cfg.renyi_pairs == "window" or (
             cfg.renyi_pairs == "adaptive"
-            and min(len(tr.scans), cfg.window_scans) < cfg.renyi_all_pairs_scans)
-        lab = (np.concatenate(tr.mirrors[-cfg.window_scans:])
+            and min(n_seg, cfg.window_scans) < cfg.renyi_all_pairs_scans)
+        lab = (np.concatenate(tr.mirrors[w0:])
                if cfg.entropy == "renyi" and within else None)
         # warm start from the previous refinement (a small search around it), cold from the
         # centroid line: keeps one update well inside the scan period
@@ -474,7 +504,7 @@ class Tracker:
         guess = tr.motion if tr.motion is not None else coarse
         warm_grid: dict[str, Any] = {"voxel_grid": cfg.warm_voxel_grid} if warm else {}
         tr.motion = refine_motion(P, Tp, guess, entropy=cfg.entropy,
-                                  sigma_m=cfg.sigma_m, voxel_m=cfg.voxel_m, n_scans=len(tr.scans),
+                                  sigma_m=cfg.sigma_m, voxel_m=cfg.voxel_m, n_scans=n_seg,
                                   max_points=cfg.max_points,
                                   renyi_method=cfg.renyi_method,
                                   renyi_subsample=cfg.renyi_subsample,
@@ -505,6 +535,7 @@ class Tracker:
         big = 1e9
         cost = np.full((len(ids), len(objs)), big)
         priors: dict[tuple[int, int], Any] = {}
+        turned: set[tuple[int, int]] = set()
         for a, tid in enumerate(ids):
             tr = self.tracks[tid]
             for b, (c, t) in enumerate(zip(cents, times)):
@@ -512,13 +543,19 @@ class Tracker:
                 m = np.asarray(prior.state_vector, float).ravel()
                 P = np.asarray(prior.covar, float)
                 d = c - m[[0, 2]]
-                if float(np.hypot(*d)) > self._gate_m(tr, t):
-                    continue
-                S = P[np.ix_([0, 2], [0, 2])] + np.eye(2) * cfg.position_sigma_m ** 2
-                d2 = float(d @ np.linalg.solve(S, d))
-                if d2 <= cfg.gate_chi2:
-                    cost[a, b] = d2
-                    priors[a, b] = prior
+                if float(np.hypot(*d)) <= self._gate_m(tr, t):
+                    S = P[np.ix_([0, 2], [0, 2])] + np.eye(2) * cfg.position_sigma_m ** 2
+                    d2 = float(d @ np.linalg.solve(S, d))
+                    if d2 <= cfg.gate_chi2:
+                        cost[a, b] = d2
+                        priors[a, b] = prior
+                        continue
+                reach = self._turn_reach_m(tr, scan.scan, t)
+                dl = float(np.hypot(*(c - tr.centroids[-1])))
+                if reach > 0 and dl <= reach:
+                    cost[a, b] = cfg.gate_chi2 + (dl / reach) ** 2
+                    priors[a, b] = self._birth(c, t)
+                    turned.add((a, b))
         assign: dict[int, int] = {}
         if len(ids) and len(objs):
             rows, cols = linear_sum_assignment(cost)
@@ -578,10 +615,15 @@ class Tracker:
         changed = []
         for a, bs in members.items():
             tr = self.tracks[ids[a]]
+            if (a, bs[0]) in turned:
+                # the object turned: its motion starts afresh here (TrackerConfig.turn_reach_m)
+                tr.start, tr.motion = len(tr.scans), None
+                bs = bs[:1]  # pieces near a turned track's cluster are born on their own
             idx = np.concatenate([objs[b] for b in bs])
             c = scan.points[idx, :2].mean(axis=0)
             t = float(scan.t_s[idx].mean())
-            prior = priors[a, bs[0]] if len(bs) == 1 else self._predict(tr, t)
+            prior = (priors[a, bs[0]] if len(bs) == 1 or tr.start == len(tr.scans)
+                     else self._predict(tr, t))
             self._add(tr, scan, idx, c, t)
             first = tr.motion is None
             self._estimate(tr)
