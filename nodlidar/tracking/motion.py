@@ -50,7 +50,8 @@ from scipy.spatial import cKDTree
 from ..errors import require
 
 __all__ = ["MotionEstimate", "compensate", "coarse_motion", "voxel_entropy", "RenyiCost",
-           "refine_motion", "velocity_from_motion", "motion_from_velocity"]
+           "refine_motion", "velocity_from_motion", "motion_from_velocity", "incidence_weights",
+           "labels_observe_motion"]
 
 ENTROPIES = ("voxel", "renyi")
 
@@ -283,17 +284,22 @@ class RenyiCost:
         A label per point (its mirror window): the sum then keeps only the pairs of points
         with the same label (drawn within labels by :func:`_draw_label_pairs` beyond
         ``max_points``). None, or one label for every point: all pairs.
+    weights : (n,) float, optional
+        A weight per point: the sum is ``sum_i w_i^2 + sum_{i != j} w_i w_j k_ij`` over
+        ``(sum_i w_i)^2`` (None: all ones, the plain cost). Used to give every part of a
+        surface the same mass (:func:`incidence_weights`).
     """
 
     def __init__(self, points: ArrayLike, t_s: ArrayLike, t_ref_s: float, sigma_m: float,
                  center_velocity: np.ndarray | Sequence[float],
                  max_dv_m_s: float = 0.1, cutoff_sigmas: float = 5.0, plane: bool = True,
                  max_points: int = 800, subsample: str = "points",
-                 labels: ArrayLike | None = None) -> None:
+                 labels: ArrayLike | None = None, weights: ArrayLike | None = None) -> None:
         require(subsample in ("points", "pairs"), "subsample", subsample, "points or pairs")
         p = np.asarray(points, float)
         t = np.asarray(t_s, float)
         lab = None if labels is None else np.asarray(labels)
+        wt = None if weights is None else np.asarray(weights, float)
         if lab is not None and (len(lab) == 0 or np.all(lab == lab[0])):
             lab = None  # one view: every pair is within it
         sample_pairs = subsample == "pairs" and len(p) > max_points
@@ -302,6 +308,7 @@ class RenyiCost:
             sel = order[np.linspace(0, len(p) - 1, max_points).round().astype(int)]
             p, t = p[sel], t[sel]
             lab = None if lab is None else lab[sel]
+            wt = None if wt is None else wt[sel]
         if plane:
             p = np.column_stack([p[:, :2], np.zeros(len(p))])
         self.n = len(p)
@@ -343,6 +350,11 @@ class RenyiCost:
         self.dz2 = (dz32 ** 2).astype(np.float32)
         self.dt = (t[j] - t[i]).astype(np.float32)
         self.n_pairs = len(i)
+        # point weights: the self terms sum w_i^2, each pair w_i w_j, normalised by (sum w)^2
+        # (all ones: the plain sum, n self terms over n^2)
+        self.pw = None if wt is None else (wt[i] * wt[j]).astype(np.float32)
+        self.s0 = float(self.n) if wt is None else float(np.sum(wt ** 2))
+        self.norm = float(self.n) ** 2 if wt is None else float(np.sum(wt)) ** 2
         self.c = np.asarray(center_velocity, float)
         self.inv4s2 = np.float32(1.0 / (4.0 * sigma_m ** 2))
         self.plane = bool(plane)
@@ -362,8 +374,11 @@ class RenyiCost:
         if not self.plane:
             dx += self.dz2
         dx *= -self.inv4s2
-        s = self.n + 2.0 * self.w * float(np.sum(np.exp(dx, out=dx), dtype=np.float64))
-        return float(-np.log(s / self.n ** 2))
+        e = np.exp(dx, out=dx)
+        if self.pw is not None:
+            e *= self.pw
+        s = self.s0 + 2.0 * self.w * float(np.sum(e, dtype=np.float64))
+        return float(-np.log(s / self.norm))
 
 
 def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.ndarray, np.ndarray]:
@@ -383,6 +398,8 @@ def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.
     c = float(cost.inv4s2)
     d2 *= -cost.inv4s2
     e = np.exp(d2, out=d2)
+    if cost.pw is not None:
+        e *= cost.pw
     edt = e * cost.dt
     ex, ey = edt * dx, edt * dy  # e d dt
     f64 = np.float64
@@ -395,10 +412,10 @@ def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.
     h0 = float(np.sum(edt2, dtype=f64))  # sum e dt^2
     if cost.w != 1.0:  # sampled pairs, each standing for w pairs (RenyiCost)
         s_e, gx, gy, hxx, hyy, hxy, h0 = (cost.w * x for x in (s_e, gx, gy, hxx, hyy, hxy, h0))
-    S = cost.n + 2.0 * s_e
+    S = cost.s0 + 2.0 * s_e
     gS = -4.0 * c * np.array([gx, gy])
     HS = 2.0 * (4.0 * c * c * np.array([[hxx, hxy], [hxy, hyy]]) - 2.0 * c * h0 * np.eye(2))
-    return (float(-np.log(S / cost.n ** 2)), -gS / S, -HS / S + np.outer(gS, gS) / S ** 2)
+    return (float(-np.log(S / cost.norm)), -gS / S, -HS / S + np.outer(gS, gS) / S ** 2)
 
 
 def _newton(cost: RenyiCost, w0: np.ndarray, max_step: float, xtol: float = 5e-5,
@@ -448,6 +465,45 @@ def _hessian(f, x, h):
     return H
 
 
+def incidence_weights(points: ArrayLike, ray_dir: ArrayLike, steps: ArrayLike,
+                      mirror: ArrayLike, k: int = 2, max_weight: float = 4.0) -> np.ndarray:
+    """Weight ``1 / cos(incidence)`` per point of one scan's cluster, in the top view.
+
+    Equally spaced beams put more points per metre of surface where the surface faces
+    the ray than where it grazes it (density ~ cos(incidence)). An object's visible front
+    turns with the bearing as it passes, so an entropy that counts points pulls the dense
+    fronts of successive scans together and reads a passing object slow (docs/tracking.md,
+    "Fast walkers read slow"); these weights give every part of the surface the same mass.
+    The surface direction at a point is the chord to the points ``k`` beams either side (one
+    side at the cluster's ends) seen through the same window; a point with no such
+    neighbour keeps weight 1.
+
+    points, ray_dir : (n, 3); steps, mirror : (n,) int (beam step and window per point).
+    Returns (n,) float in [1, max_weight].
+    """
+    p = np.asarray(points, float)[:, :2]
+    d = np.asarray(ray_dir, float)[:, :2]
+    key = np.asarray(steps, np.int64) * 16 + (np.asarray(mirror, np.int64) + 1)
+    order = np.argsort(key)
+    ks = key[order]
+    n = len(ks)
+
+    def find(off):
+        want = key + off * 16
+        pos = np.minimum(np.searchsorted(ks, want), max(n - 1, 0))
+        ok = (ks[pos] == want) if n else np.zeros(0, bool)
+        return np.where(ok, order[pos], np.arange(n))
+
+    nxt, prv = find(k), find(-k)
+    t = p[nxt] - p[prv]
+    tl = np.hypot(t[:, 0], t[:, 1])
+    dl = np.hypot(d[:, 0], d[:, 1])
+    ok = (tl > 0) & (dl > 0)
+    cos_inc = np.ones(n)
+    cos_inc[ok] = np.abs(t[ok, 0] * d[ok, 1] - t[ok, 1] * d[ok, 0]) / (tl[ok] * dl[ok])
+    return 1.0 / np.maximum(cos_inc, 1.0 / max_weight)
+
+
 def labels_observe_motion(labels: ArrayLike, t_s: ArrayLike, min_fraction: float = 0.25) -> bool:
     """Whether the pairs within ``labels`` observe the motion of points at times ``t_s``.
 
@@ -482,7 +538,8 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
                   voxel_max_points: int | None = None,
                   renyi_method: str = "nelder-mead",
                   renyi_subsample: str = "points",
-                  labels: ArrayLike | None = None) -> MotionEstimate:
+                  labels: ArrayLike | None = None,
+                  weights: ArrayLike | None = None) -> MotionEstimate:
     """Eq. 13: the motion whose compensated accumulation has the least entropy.
 
     Parameters
@@ -530,6 +587,8 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         points span at least a quarter of the points' time span
         (:func:`labels_observe_motion`): the pairs they allow would leave the velocity
         unobserved.
+    weights : (n,) float, optional
+        Rényi: a weight per point (:class:`RenyiCost`); None: all ones.
 
     Returns
     -------
@@ -554,7 +613,8 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
     cov: np.ndarray | None
     if entropy == "renyi":
         cost = RenyiCost(p, t, t_ref, sigma_m, w0, max_dv_m_s=search_m_s, plane=plane,
-                         max_points=max_points, subsample=renyi_subsample, labels=labels)
+                         max_points=max_points, subsample=renyi_subsample, labels=labels,
+                         weights=weights)
         nt = _newton(cost, w0, search_m_s / 4) if renyi_method == "newton" else None
         if nt is not None and np.linalg.norm(nt[0] - w0) <= search_m_s:
             w, fval, H = nt
@@ -569,7 +629,8 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         w = res.x
         if np.linalg.norm(w - w0) > search_m_s:  # left the region whose pairs were gathered
             cost = RenyiCost(p, t, t_ref, sigma_m, w, max_dv_m_s=search_m_s, plane=plane,
-                             max_points=max_points, subsample=renyi_subsample, labels=labels)
+                             max_points=max_points, subsample=renyi_subsample, labels=labels,
+                             weights=weights)
             res = minimize(cost, w, method="Nelder-Mead", options={"xatol": 5e-4, "fatol": 1e-6})
             w = res.x
         H = _hessian(cost, w, np.array([2e-3, 2e-3]))
