@@ -336,20 +336,26 @@ def test_renyi_closed_form_derivatives_match_finite_differences(subsample):
     # cost itself (float32 pair sums: agreement to ~1e-3 relative is the float32 rounding
     # of the differenced cost, well below what would move a Newton step); "pairs" (600
     # points, 200 points' worth of drawn pairs) weights every pair sum alike
-    from nodlidar.tracking.motion import _hessian, _renyi_derivatives
-
     vel = np.array([0.0014, 0.13])
     P, T = _ring_cloud(vel)
     cost = RenyiCost(P, T, T.max(), 0.01, vel, max_dv_m_s=0.05, subsample=subsample,
                      max_points=800 if subsample == "points" else 200)
     assert (cost.w == 1.0) == (subsample == "points")
     for w in (vel, vel + [0.008, -0.005]):
-        f, g, H = _renyi_derivatives(cost, w)
-        assert_allclose(f, cost(w), rtol=1e-12)
-        gn = [(cost(w + e) - cost(w - e)) / 2e-4 for e in np.eye(2) * 1e-4]
-        assert_allclose(g, gn, rtol=2e-3, atol=1e-3 * np.abs(g).max())
-        assert_allclose(H, _hessian(cost, w, np.array([1e-3, 1e-3])), rtol=1e-2,
-                        atol=1e-2 * np.abs(H).max())
+        _assert_derivatives_match(cost, w)
+
+
+def _assert_derivatives_match(cost, w):
+    """The closed-form cost, gradient and Hessian at ``w`` against the cost itself and its
+    central differences."""
+    from nodlidar.tracking.motion import _hessian, _renyi_derivatives
+
+    f, g, H = _renyi_derivatives(cost, w)
+    assert_allclose(f, cost(w), rtol=1e-12)
+    gn = [(cost(w + e) - cost(w - e)) / 2e-4 for e in np.eye(2) * 1e-4]
+    assert_allclose(g, gn, rtol=2e-3, atol=1e-3 * np.abs(g).max())
+    assert_allclose(H, _hessian(cost, w, np.array([1e-3, 1e-3])), rtol=1e-2,
+                    atol=1e-2 * np.abs(H).max())
 
 
 def test_newton_and_nelder_mead_find_the_same_renyi_minimum():
@@ -696,8 +702,6 @@ def test_incidence_weights_undo_the_passing_cylinders_slow_reading(design, dep):
 def test_weighted_renyi_cost_and_its_derivatives():
     # all-ones weights are the plain cost; the cost does not depend on the weights' scale;
     # the closed-form gradient and Hessian of a weighted cost match central differences
-    from nodlidar.tracking.motion import _hessian, _renyi_derivatives
-
     vel = np.array([0.0014, 0.13])
     P, T = _ring_cloud(vel, noise=0.005)
     w = np.random.default_rng(2).uniform(1.0, 4.0, len(P))
@@ -713,12 +717,7 @@ def test_weighted_renyi_cost_and_its_derivatives():
             assert_allclose(ones(v), plain(v), rtol=1e-9)
             assert_allclose(b(v), a(v), rtol=1e-6)
             assert abs(a(v) - plain(v)) > 1e-4  # the weights do change the cost
-            f, g, H = _renyi_derivatives(a, v)
-            assert_allclose(f, a(v), rtol=1e-12)
-            gn = [(a(v + e) - a(v - e)) / 2e-4 for e in np.eye(2) * 1e-4]
-            assert_allclose(g, gn, rtol=2e-3, atol=1e-3 * np.abs(g).max())
-            assert_allclose(H, _hessian(a, v, np.array([1e-3, 1e-3])), rtol=1e-2,
-                            atol=1e-2 * np.abs(H).max())
+            _assert_derivatives_match(a, v)
 
 
 def test_wide_kernel_reads_a_moving_cylinder_slow(design):

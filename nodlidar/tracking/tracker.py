@@ -629,7 +629,6 @@ class Tracker:
             if (a, bs[0]) in turned:
                 # the object turned: its motion starts afresh here (TrackerConfig.turn_reach_m)
                 tr.start, tr.motion = len(tr.scans), None
-                bs = bs[:1]  # pieces near a turned track's cluster are born on their own
             idx = np.concatenate([objs[b] for b in bs])
             c = scan.points[idx, :2].mean(axis=0)
             t = float(scan.t_s[idx].mean())
