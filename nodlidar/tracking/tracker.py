@@ -546,7 +546,10 @@ class Tracker:
         big = 1e9
         cost = np.full((len(ids), len(objs)), big)
         priors: dict[tuple[int, int], Any] = {}
-        turned: set[tuple[int, int]] = set()
+        # turn pairs' priors (a birth at the cluster) are kept apart from the motion
+        # predictions: only an assigned turn pair uses one; the sharing test below must see
+        # where a track's motion puts it, not the cluster itself
+        turn_priors: dict[tuple[int, int], Any] = {}
         for a, tid in enumerate(ids):
             tr = self.tracks[tid]
             for b, (c, t) in enumerate(zip(cents, times)):
@@ -565,12 +568,14 @@ class Tracker:
                 dl = float(np.hypot(*(c - tr.centroids[-1])))
                 if reach > 0 and dl <= reach:
                     cost[a, b] = cfg.gate_chi2 + (dl / reach) ** 2
-                    priors[a, b] = self._birth(c, t)
-                    turned.add((a, b))
+                    turn_priors[a, b] = self._birth(c, t)
         assign: dict[int, int] = {}
         if len(ids) and len(objs):
             rows, cols = linear_sum_assignment(cost)
             assign = {int(b): int(a) for a, b in zip(rows, cols) if cost[a, b] < big}
+        turned = {(a, b) for b, a in assign.items() if (a, b) in turn_priors}
+        for a, b in turned:
+            priors[a, b] = turn_priors[a, b]
         # a cluster that gates with other confirmed tracks' predictions too holds (part of)
         # those objects (two people touching in the top view, or one partly behind the
         # other): its points go to the nearest of the predictions
