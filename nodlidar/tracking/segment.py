@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -153,6 +154,12 @@ class Segmented:
         Cluster label (-1: none / ground / no return).
     dynamic : bool
         The beam belongs to a dynamic cluster.
+    supported : bool or None
+        The beam belongs to a cluster that is dynamic only without static support
+        (``SegmentConfig.static_speed_m_s``): it is where something was 2 s ago as well -
+        a static thing rays pass beside, or a mover back on its own path (a person pacing,
+        a robot reversing). Not dynamic; a track already following a mover may take it
+        (``TrackerConfig.follow_supported_m_s``). None: no static support applied.
     """
 
     scan: ScanPoints
@@ -160,11 +167,19 @@ class Segmented:
     inconsistent: np.ndarray
     cluster: np.ndarray
     dynamic: np.ndarray
+    supported: np.ndarray | None = None
 
     def objects(self) -> list[np.ndarray]:
         """Beam indices of each dynamic cluster."""
-        labs = np.unique(self.cluster[self.dynamic])
-        return [np.flatnonzero(self.dynamic & (self.cluster == c)) for c in labs]
+        return self._clusters(self.dynamic)
+
+    def supported_objects(self) -> list[np.ndarray]:
+        """Beam indices of each cluster that is dynamic only without static support."""
+        return [] if self.supported is None else self._clusters(self.supported)
+
+    def _clusters(self, mask: np.ndarray) -> list[np.ndarray]:
+        labs = np.unique(self.cluster[mask])
+        return [np.flatnonzero(mask & (self.cluster == c)) for c in labs]
 
 
 def cluster_points(points: np.ndarray, radius_m: float | np.ndarray, min_points: int = 1,
@@ -241,10 +256,16 @@ def classify(vmap: VoxelMap, scan: ScanPoints, cfg: SegmentConfig) -> Segmented:
     inc = np.zeros(n, bool)
     lab = np.full(n, -1)
     dyn = np.zeros(n, bool)
+    support = isinstance(vmap, WindowVoxelMap) and vmap.static_age_s > 0
+    raw = np.zeros(n, bool)  # inconsistent before static support
+    sup = None
     if len(idx):
         p = scan.points[idx]
-        kw = {"t_s": scan.t_mid_s} if getattr(vmap, "static_age_s", 0.0) > 0 else {}
-        inc[idx] = vmap.inconsistent(p, scan.scan, cfg.min_scan_gap, **kw)
+        raw[idx] = vmap.inconsistent(p, scan.scan, cfg.min_scan_gap)
+        inc[:] = raw
+        if support and raw.any():
+            j = np.flatnonzero(raw)
+            inc[j] = ~cast(WindowVoxelMap, vmap).static_support(scan.points[j], scan.t_mid_s)
         if cfg.cluster_plane:
             eps = np.clip(cfg.cluster_beams * scan.range_m[idx] * cfg.beam_step_rad,
                           cfg.cluster_min_m, cfg.cluster_radius_m)
@@ -255,8 +276,13 @@ def classify(vmap: VoxelMap, scan: ScanPoints, cfg: SegmentConfig) -> Segmented:
         ok = lab >= 0
         if ok.any():
             size = np.bincount(lab[ok])
-            ninc = np.bincount(lab[ok & inc], minlength=len(size))
-            is_dyn = (ninc >= cfg.min_inconsistent_points) & (ninc >= cfg.min_inconsistent_fraction * size)
+
+            def dynamic_clusters(incons: np.ndarray) -> np.ndarray:
+                ninc = np.bincount(lab[ok & incons], minlength=len(size))
+                return (ninc >= cfg.min_inconsistent_points) & \
+                    (ninc >= cfg.min_inconsistent_fraction * size)
+
+            is_dyn = dynamic_clusters(inc)
             if cfg.fraction_per_window:
                 # the same tests on each (cluster, window) part (SegmentConfig)
                 _, win = np.unique(scan.mirror, return_inverse=True)
@@ -268,7 +294,11 @@ def classify(vmap: VoxelMap, scan: ScanPoints, cfg: SegmentConfig) -> Segmented:
                     (wninc >= cfg.min_inconsistent_fraction * wsize)
                 is_dyn |= wdyn.reshape(len(size), nw).any(axis=1)
             dyn = ok & is_dyn[np.maximum(lab, 0)]
-    return Segmented(scan, ground, inc, lab, dyn)
+            if support:
+                sup = ok & (dynamic_clusters(raw) & ~is_dyn)[np.maximum(lab, 0)]
+    if support and sup is None:
+        sup = np.zeros(n, bool)
+    return Segmented(scan, ground, inc, lab, dyn, sup)
 
 
 def segment_batch(scans: list[ScanPoints], cfg: SegmentConfig = SegmentConfig(),
