@@ -313,6 +313,10 @@ def test_bad_grid_parameters_are_refused():
         refine_motion(P, T, MotionEstimate(0.13, 1.56), entropy="voxel", voxel_grid=(2,))
     with pytest.raises(ParameterError, match="warm_voxel_grid"):
         TrackerConfig(warm_voxel_grid=())
+    for name, bad in (("follow_supported_m_s", -0.1), ("window_cut_speed_m_s", 0.0),
+                      ("window_cut_drop_m_s", 0.0)):
+        with pytest.raises(ParameterError, match=name):
+            TrackerConfig(**{name: bad})
 
 
 def test_scanpoints_is_neutral_and_live_path_does_not_import_the_simulated_source():
@@ -782,9 +786,11 @@ def test_adaptive_pairs_are_within_windows_while_the_window_is_short(monkeypatch
             built.append(self)
 
     monkeypatch.setattr(M, "RenyiCost", Recording)
-    # (unweighted points: the oracle is the plain within-label / all-pairs sum)
+    # (unweighted points: the oracle is the plain within-label / all-pairs sum; the stub's
+    # slices end at its beam list's ends, which window_cut counts as cut)
     cfg = TrackerConfig(renyi_pairs="adaptive", renyi_all_pairs_scans=4, window_scans=6,
-                        incidence_weights=False)
+                        incidence_weights=False, window_cut_speed_m_s=np.inf,
+                        window_cut_drop_m_s=np.inf)
     trk = Tracker(cfg)
     segs = [_WindowedSeg(k) for k in range(9)]
     checked = {"within": 0, "all": 0}
