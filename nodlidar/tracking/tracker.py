@@ -622,8 +622,10 @@ class Tracker:
             # clusters dynamic only without static support, where that support is the
             # tracks' own earlier points: a moving track may take one (its object is back
             # on its own path); nothing is born from one
-            objs = objs + [i for i in seg.supported_objects()
-                           if self._own_support(scan.points[i], scan.t_mid_s)]
+            sup = seg.supported_objects()
+            path = self._path_keys(scan.t_mid_s) if sup else np.zeros(0, np.int64)
+            objs = objs + [i for i in sup if len(path) and np.mean(
+                np.isin(self._grid.keys(scan.points[i]), path)) >= 0.5]
         supported = set(range(n_dyn, len(objs)))
         cents = [scan.points[i, :2].mean(axis=0) for i in objs]
         times = [float(scan.t_s[i].mean()) for i in objs]
@@ -792,13 +794,12 @@ class Tracker:
                 changed.append(self._state(tr, alive=False))
         return changed
 
-    def _own_support(self, points: np.ndarray, t_s: float) -> bool:
-        """At least half of ``points`` (n, 3) [m] lie in voxels that tracks took
-        ``static_age_s`` or more before ``t_s`` [s] (``TrackerConfig.follow_supported_m_s``)."""
-        old = [k for t, k in self._taken if t <= t_s - self._static_age_s and len(k)]
-        if not old or not len(points):
-            return False
-        return bool(np.mean(np.isin(self._grid.keys(points), np.concatenate(old))) >= 0.5)
+    def _path_keys(self, t_s: float) -> np.ndarray:
+        """Voxel keys of the points tracks took ``static_age_s`` or more before ``t_s`` [s]
+        (their path; ``TrackerConfig.follow_supported_m_s``: a supported cluster qualifies
+        when at least half of its points lie in these voxels)."""
+        old = [k for t, k in self._taken if t <= t_s - self._static_age_s]
+        return np.unique(np.concatenate(old)) if old else np.zeros(0, np.int64)
 
     def _add(self, tr: _Track, scan, idx, c, t) -> None:
         tr.points.append(scan.points[idx])
