@@ -166,7 +166,7 @@ def test_furniture_is_not_a_tracks_own_path(design, dep):
     # clusters from then on. Counted: supported clusters that are mostly static world
     # (simulator truth 0) with points a track took in that scan. Measured, seed 0, with
     # mirrors / lifted: 5 / 20 when every point tracks took counted as their path, 1 / 2
-    # now.
+    # with dynamic clusters only, 0 / 1 once the track must also surely move.
     from nodlidar.tracking.tracker import Tracker
 
     trk = Tracker(range_sigma=design.lidar.range_sigma_m)

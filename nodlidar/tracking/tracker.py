@@ -169,8 +169,9 @@ class TrackerConfig:
     turn_scans : int
         See ``turn_reach_m``.
     follow_supported_m_s : float
-        A track moving at least this fast (filtered speed [m/s]) may take, within its
-        constant-velocity gates, a cluster that is dynamic only without static support
+        A track moving at least this fast (filtered speed [m/s], and at least three
+        standard deviations of it from zero: a track that coasted unseen is not sure to
+        move) may take, within its constant-velocity gates, a cluster that is dynamic only without static support
         (:attr:`~nodlidar.tracking.segment.Segmented.supported`); such a cluster never
         starts a track nor joins one as a piece. Static support (a voxel also hit 2 s
         earlier) keeps furniture out of the dynamic set, but a mover back on its own path
@@ -340,6 +341,7 @@ _EPOCH = _dt.datetime(2000, 1, 1, tzinfo=_dt.UTC)
 
 _TAKEN_SCANS = 60  # the online segmenter's window: static support older than it is forgotten
 _BIRTH_SIGMA_V_M_S = 0.5  # velocity sigma of a new track: a person walks at most ~1.5 m/s (3 sigma)
+_SURE_SIGMAS = 3.0  # a track surely moves when its speed is this many sigmas from zero
 _FORGET_VAR_M2_S2 = 100.0  # a prior velocity variance that carries no information (10 m/s sigma)
 
 
@@ -449,6 +451,22 @@ class Tracker:
     def _predict(self, tr: _Track, t: float):
         pred, _, _ = self._filters()
         return pred.predict(tr.state, timestamp=stone_soup_time(t))
+
+    def _surely_moving(self, tr: _Track, t: float) -> bool:
+        """Whether ``tr`` moves at ``follow_supported_m_s`` or faster at time ``t`` [s], and
+        surely so: its predicted speed at least ``_SURE_SIGMAS`` standard deviations (along
+        its velocity) from zero. A track that has coasted unseen has lost that certainty
+        (measured: a start-up ghost on a table, unseen for 2 s at 0.25 m/s, then took the
+        table's supported cluster five scans running)."""
+        if tr.motion is None:
+            return False
+        v = tr.x[2:]
+        speed = float(np.hypot(*v))
+        if speed < self.config.follow_supported_m_s:
+            return False
+        P = np.asarray(self._predict(tr, t).covar, float)[np.ix_([1, 3], [1, 3])]
+        u = v / speed
+        return speed >= _SURE_SIGMAS * float(np.sqrt(max(u @ P @ u, 0.0)))
 
     def _gate_m(self, tr: _Track, t: float) -> float:
         """Distance gate [m] of ``tr`` for a cluster at time ``t`` [s]: ``gate_m``, grown
@@ -639,8 +657,7 @@ class Tracker:
         turn_priors: dict[tuple[int, int], Any] = {}
         for a, tid in enumerate(ids):
             tr = self.tracks[tid]
-            moving = tr.motion is not None and \
-                float(np.hypot(*tr.x[2:])) >= cfg.follow_supported_m_s
+            moving = bool(supported) and self._surely_moving(tr, scan.t_mid_s)
             for b, (c, t) in enumerate(zip(cents, times)):
                 if b in supported and not moving:
                     continue
