@@ -314,7 +314,7 @@ def test_bad_grid_parameters_are_refused():
     with pytest.raises(ParameterError, match="warm_voxel_grid"):
         TrackerConfig(warm_voxel_grid=())
     for name, bad in (("follow_supported_m_s", -0.1), ("window_cut_speed_m_s", 0.0),
-                      ("window_cut_drop_m_s", 0.0)):
+                      ("window_cut_drop_m_s", 0.0), ("window_cut_reach_m", -0.01)):
         with pytest.raises(ParameterError, match=name):
             TrackerConfig(**{name: bad})
 
