@@ -276,29 +276,26 @@ def window_cut(scan: ScanPoints, idx: np.ndarray, reach_m: float = 0.0,
     if not len(idx):
         return cut
     steps, mirror = scan.steps, scan.mirror
-    order = np.argsort(steps)
-    ss = steps[order]
+    # beam index by step (-1: no such beam), one slot of margin either side
+    base = int(steps.min()) - 1
+    lut = np.full(int(steps.max()) - base + 2, -1, np.int64)
+    lut[steps - base] = np.arange(len(steps))
+    win = mirror[idx]
     ends_cut = np.zeros(len(idx), bool)  # per point: the next step is in another window
     for off in (-1, 1):
-        want = steps[idx] + off
-        pos = np.minimum(np.searchsorted(ss, want), len(ss) - 1)
-        present = ss[pos] == want
-        ends_cut |= ~present | (mirror[order[pos]] != mirror[idx])
-    win = mirror[idx]
+        nb = lut[steps[idx] + off - base]
+        ends_cut |= (nb < 0) | (mirror[nb] != win)
     cut_win = set(np.unique(win[ends_cut]).tolist())
     if reach_m > 0 or occluders:
-        lut = np.full(int(steps.max()) + 2, -1, np.int64)
-        lut[steps] = np.arange(len(steps))
         valid = scan.valid
         xy = scan.points[:, :2]
         for m in np.unique(win):
             if m in cut_win:
                 continue
             st = steps[idx[win == m]]
-            for cur, off in ((int(lut[st.min()]), -1), (int(lut[st.max()]), 1)):
+            for cur, off in ((int(lut[st.min() - base]), -1), (int(lut[st.max() - base]), 1)):
                 for _ in range(max_walk):
-                    nxt_step = int(steps[cur]) + off
-                    nxt = int(lut[nxt_step]) if 0 <= nxt_step < len(lut) else -1
+                    nxt = int(lut[int(steps[cur]) + off - base])
                     if nxt < 0 or mirror[nxt] != m:
                         cut_win.add(int(m))  # the window's (or the view's) edge
                         break
