@@ -221,7 +221,11 @@ def test_session_capture_lifted_at_the_design_angle(lift_toml, designs):
     assert angles[2] == pytest.approx(-LIFT, abs=RAD_PER_TICK)
     assert angles[3] == pytest.approx(LIFT, abs=RAD_PER_TICK)
     mirror_t, mirror_a = cap.joints["mirror_left"]
-    assert len(mirror_t) > 2 and np.all(np.abs(mirror_a + LIFT) <= RAD_PER_TICK)
+    # sampling starts once the lift has arrived (within LIFT_ARRIVAL_RAD, 3 ticks); the
+    # servo may still close the last ticks (measured on a loaded machine: the first sample
+    # 1.3 ticks off, the rest 0.3), so one tick holds only from the end of the approach
+    assert len(mirror_t) > 2 and np.all(np.abs(mirror_a + LIFT) <= actuators.LIFT_ARRIVAL_RAD)
+    assert np.abs(mirror_a[-1] + LIFT) <= RAD_PER_TICK
     cloud = cap.assemble(s.model)
     assert cloud.meta["mirror_moving"] == 0
     # every assembled point of a reflected window's step is lifted (projected direct), and

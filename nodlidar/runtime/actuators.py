@@ -83,6 +83,7 @@ __all__ = [
     "NodController",
     "MirrorLiftProfile",
     "MirrorLift",
+    "LIFT_ARRIVAL_RAD",
     "Samples",
     "SampleBuffer",
     "PositionSampler",
@@ -719,6 +720,12 @@ class NodController:
 Side = Literal["left", "right", "both"]
 
 
+#: How close to its goal a mirror servo counts as arrived [rad] (``MirrorLift.wait``): three
+#: encoder ticks. A capture starts sampling once the mirrors are this close, so its first
+#: samples may still be closing the last ticks.
+LIFT_ARRIVAL_RAD = 3 * RAD_PER_TICK
+
+
 class MirrorLift:
     """Lift or reset (deploy) the left/right mirrors.
 
@@ -748,7 +755,7 @@ class MirrorLift:
         design: Design | None = None,
         left_id: int = MIRROR_LEFT_ID,
         right_id: int = MIRROR_RIGHT_ID,
-        tolerance_rad: float = 3 * RAD_PER_TICK,
+        tolerance_rad: float = LIFT_ARRIVAL_RAD,
     ):
         _check_id(left_id)
         _check_id(right_id)
