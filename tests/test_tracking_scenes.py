@@ -302,15 +302,15 @@ def test_a_coasting_track_is_not_sure_to_move():
     # tests/test_tracking_furniture.py, took the table after coasting 2 s at 0.25 m/s).
     from nodlidar.tracking.tracker import Tracker
 
-    for blob, speed, sure_until in ((_OneBlob, 0.13, 2.0), (_PacingBlob, 1.0, 6.0)):
+    for blob, speed, later, sure_later in ((_OneBlob, 0.13, 3.0, False),
+                                           (_PacingBlob, 1.0, 6.0, True)):
         trk = Tracker()
         for k in range(20):
             trk.update(blob(k))
         (tr,) = trk.tracks.values()
         assert abs(float(np.hypot(*tr.x[2:])) - speed) < 0.01
-        assert trk._surely_moving(tr, 2.0)
-        assert trk._surely_moving(tr, sure_until)
-        assert trk._surely_moving(tr, 3.0) == (speed > 0.5)
+        assert trk._surely_moving(tr, 2.0)  # just after its last scan (t = 1.9 s)
+        assert trk._surely_moving(tr, later) == sure_later
 
 
 def test_a_track_keeps_its_object_through_a_turn():
