@@ -13,7 +13,9 @@ default: a sample in every voxel the ray crosses except corner clips shorter tha
 its start to ``range - margin``. The margin keeps a ray from carving the voxel of its own end
 point and of its neighbours' end points on the same surface: ``margin = margin_voxels * voxel
 + 3 sigma(r)`` with the lidar's range sigma (range noise would otherwise carve static
-surfaces), so static surfaces are not marked free by their own noise.
+surfaces), so static surfaces are not marked free by their own noise. The voxel part may be
+scaled per ray (``margin_scale``): the segmentation measures it off long surfaces seen at
+grazing incidence (:func:`nodlidar.tracking.segment.grazing_secant`).
 
 Voxel keys pack ``(i, j, k)`` (21 bits each, offset 2**20) into one int64.
 """
@@ -173,22 +175,29 @@ class VoxelMap:
         self.hits = _Stats()
         self.free = _Stats()
 
-    def free_length(self, range_m: np.ndarray, offset_m: np.ndarray) -> np.ndarray:
-        """Length [m] of each outgoing ray that is carved (see the module docstring)."""
+    def free_length(self, range_m: np.ndarray, offset_m: np.ndarray,
+                    margin_scale: np.ndarray | float = 1.0) -> np.ndarray:
+        """Length [m] of each outgoing ray that is carved (see the module docstring).
+
+        ``margin_scale`` (scalar or (n,), >= 1) multiplies each ray's voxel margin: a ray
+        that meets its surface at grazing incidence must stop further back along itself to
+        stay as far off the surface (:func:`~nodlidar.tracking.segment.grazing_secant`)."""
         r = np.asarray(range_m, float)
         sig = self.range_sigma(np.nan_to_num(r)) if self.range_sigma is not None else 0.0
-        free = r - offset_m - self.margin_voxels * self.grid.voxel_m - 3.0 * sig
+        free = r - offset_m - self.margin_voxels * self.grid.voxel_m * margin_scale - 3.0 * sig
         return np.where(np.isfinite(r), free, self.carve_no_return_m)
 
     def free_keys(self, start: np.ndarray, direction: np.ndarray, range_m: np.ndarray,
-                  offset_m: np.ndarray) -> np.ndarray:
-        """Unique keys of the voxels the rays traverse (before the margin).
+                  offset_m: np.ndarray, margin_scale: np.ndarray | float = 1.0) -> np.ndarray:
+        """Unique keys of the voxels the rays traverse (before the margin, times
+        ``margin_scale``: :meth:`free_length`).
 
         The keys of :func:`carve_samples`' points (``grid.keys``), computed axis by axis on
         1D arrays with the same float operations (the (m, 3) sample array is never made:
         this is the online segmentation's largest cost, ~60 k samples per scan).
         """
-        length = np.nan_to_num(np.asarray(self.free_length(range_m, offset_m), float), nan=0.0)
+        length = np.nan_to_num(np.asarray(self.free_length(range_m, offset_m, margin_scale),
+                                          float), nan=0.0)
         cnt = np.maximum(np.ceil(length / self.spacing).astype(np.int64), 0)
         if cnt.sum() == 0:
             return np.zeros(0, np.int64)
@@ -212,7 +221,8 @@ class VoxelMap:
         return np.unique(k)
 
     def integrate(self, scan: int, points: np.ndarray, start: np.ndarray, direction: np.ndarray,
-                  range_m: np.ndarray, offset_m: np.ndarray, t_s: float = np.nan) -> None:
+                  range_m: np.ndarray, offset_m: np.ndarray, t_s: float = np.nan,
+                  margin_scale: np.ndarray | float = 1.0) -> None:
         """Add one scan: hits from ``points`` (rows with NaN ignored) and the carved rays
         (``t_s``, the scan's time, is used by :class:`WindowVoxelMap`'s static support only).
 
@@ -223,12 +233,14 @@ class VoxelMap:
             Hit points to record [m] (may be a subset of the beams, e.g. without ground).
         start, direction : (n, 3) float; range_m, offset_m : (n,) float
             Every beam's outgoing ray, measured range [m] and path offset [m].
+        margin_scale : float or (n,) float
+            Each ray's voxel margin factor (:meth:`free_length`).
         """
         p = np.asarray(points, float)
         p = p[np.all(np.isfinite(p), axis=1)]
         if len(p):
             self.hits.add(self.grid.keys(p), scan)
-        fk = self.free_keys(start, direction, range_m, offset_m)
+        fk = self.free_keys(start, direction, range_m, offset_m, margin_scale)
         if len(fk):
             self.free.add(fk, scan)
 
@@ -286,9 +298,10 @@ class WindowVoxelMap(VoxelMap):
         return int(sum(len(k) for k in self._keys))
 
     def integrate(self, scan: int, points: np.ndarray, start: np.ndarray, direction: np.ndarray,
-                  range_m: np.ndarray, offset_m: np.ndarray, t_s: float = np.nan) -> None:
+                  range_m: np.ndarray, offset_m: np.ndarray, t_s: float = np.nan,
+                  margin_scale: np.ndarray | float = 1.0) -> None:
         """As :meth:`VoxelMap.integrate`; ``t_s`` is the scan's time [s] (static support)."""
-        fk = self.free_keys(start, direction, range_m, offset_m)  # sorted, unique
+        fk = self.free_keys(start, direction, range_m, offset_m, margin_scale)  # sorted, unique
         self._scans.append(int(scan))
         self._keys.append(fk)
         if self.static_age_s > 0:
