@@ -430,12 +430,12 @@ def grazing_secant(scan: ScanPoints, max_secant: float = 10.0, beams: int = 5,
     ok = np.isfinite(t) & scan.valid
     out[ok] = np.minimum(np.sqrt(1.0 + t[ok] ** 2), max_secant)
     if min_run_m > 0:
-        run = breaks
-        first = np.flatnonzero(np.diff(run, prepend=-1))
+        # a run: the beams with the same count of breaks before them (runs 0, 1, ...)
+        first = np.flatnonzero(np.diff(breaks, prepend=-1))
         last = np.append(first[1:] - 1, n - 1)
         p = np.nan_to_num(scan.points)
         extent = np.linalg.norm(p[last] - p[first], axis=1)
-        out[extent[run] < min_run_m] = 1.0
+        out[extent[breaks] < min_run_m] = 1.0
     return out
 
 
