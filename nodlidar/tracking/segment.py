@@ -34,7 +34,7 @@ from .scans import ScanPoints
 from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap
 
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch",
-           "OnlineSegmenter", "window_cut", "grazing_secant"]
+           "OnlineSegmenter", "window_cut", "grazing_secant", "seen_apart"]
 
 
 @dataclass(frozen=True)
@@ -336,6 +336,74 @@ def window_cut(scan: ScanPoints, idx: np.ndarray, reach_m: float = 0.0,
     for m in cut_win:
         cut |= win == m
     return cut
+
+
+def seen_apart(scan: ScanPoints, a: np.ndarray, b: np.ndarray, beyond_m: float = 0.1,
+               middle: float = 0.6, z_tol_m: float = 0.0, no_return_m: float = 5.0) -> bool:
+    """Whether the scan saw free space between two clusters: a ray that passes between them.
+
+    Two clusters of one scan can be two pieces of one object (its faces seen through
+    different mirror windows, or parts the segmentation split) or two objects side by
+    side; how far apart their centroids are does not tell (two people 0.42 m apart seen
+    obliquely, a 0.6 m cart). The free space does. ``p`` and ``q`` are the closest pair of
+    points of the two in the top view; a ray *passes between* them when, in the top view,
+    it crosses the middle ``middle`` of the segment ``p``-``q`` at a height where both
+    clusters have points (within ``z_tol_m``) and ends ``beyond_m`` or more past the crossing (a beam with no
+    return: at ``no_return_m``). The segment between two points of one convex object lies
+    inside it, where no ray goes; a beam through the gap between two people does.
+
+    Parameters
+    ----------
+    scan : ScanPoints
+    a, b : (k,) int
+        Beam indices of the two clusters in ``scan``.
+    beyond_m : float
+        How far past the crossing the ray must end [m] (more than the range noise, so a ray
+        ending on the far cluster's own surface does not count).
+    middle : float
+        Share of the segment, centred, that the ray must cross (0..1): a ray that grazes
+        one cluster's noisy edge crosses the segment near its end.
+    z_tol_m : float
+        Margin [m] on the heights where both clusters have points. 0 by default: a ray
+        just over an object's top is no evidence of a gap (measured with 0.1 m: a 0.5 m
+        tall box's front and side faces, 0.42-0.45 m high, were "seen apart" by rays
+        passing over its top, and a second track took the box).
+    no_return_m : float
+        Length [m] of a beam with no return (it went through).
+
+    Returns
+    -------
+    bool
+    """
+    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
+    if not len(a) or not len(b):
+        return False
+    pa, pb = scan.points[a], scan.points[b]
+    d, j = cKDTree(pb[:, :2]).query(pa[:, :2])
+    i = int(np.argmin(d))
+    p, q = pa[i, :2], pb[j[i], :2]
+    e = q - p
+    if float(np.hypot(*e)) <= 0:
+        return False
+    # heights where both clusters have points
+    z0 = max(float(pa[:, 2].min()), float(pb[:, 2].min())) - z_tol_m
+    z1 = min(float(pa[:, 2].max()), float(pb[:, 2].max())) + z_tol_m
+    if z1 < z0:
+        return False
+    s3, d3 = scan.ray_start, scan.ray_dir
+    length = np.where(scan.valid, scan.range_m - scan.ray_offset, no_return_m)
+    # top view: s + t d = p + u e (t: path length along the 3D unit direction)
+    den = d3[:, 0] * e[1] - d3[:, 1] * e[0]
+    ok = np.abs(den) > 1e-12
+    den = np.where(ok, den, 1.0)
+    w = p - s3[:, :2]
+    t = (w[:, 0] * e[1] - w[:, 1] * e[0]) / den
+    u = (w[:, 0] * d3[:, 1] - w[:, 1] * d3[:, 0]) / den
+    z = s3[:, 2] + t * d3[:, 2]
+    lo = 0.5 - middle / 2
+    hit = ok & (t > 0) & (u >= lo) & (u <= 1 - lo) & (z >= z0) & (z <= z1) & \
+        (length >= t + beyond_m)
+    return bool(hit.any())
 
 
 def new_map(cfg: SegmentConfig,

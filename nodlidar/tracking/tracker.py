@@ -57,7 +57,7 @@ import numpy as np
 
 from ..errors import require
 from .motion import MotionEstimate, coarse_motion, incidence_weights, refine_motion
-from .segment import window_cut
+from .segment import seen_apart, window_cut
 
 if TYPE_CHECKING:
     from .scans import ScanPoints
@@ -90,6 +90,14 @@ class TrackerConfig:
     coalesce_m : float
         Of two tracks updated in one scan closer than this [m], the younger ends (below
         the 0.42 m between two people side by side).
+    merge_seen_apart : bool
+        Two clusters that the scan saw free space between
+        (:func:`~nodlidar.tracking.segment.seen_apart`: a ray passed between them) are two
+        objects, however close: neither joins the other as a piece (``merge_m``). Centroid
+        distance alone merged two people 0.42-0.45 m apart wherever their visible sides'
+        centroids came within 0.38 m: walking away side by side, seen obliquely, or close
+        to the sensor, one track took both for their first scans (docs/tracking.md "Two
+        objects or one"). False: ``merge_m`` alone.
     confirm_scans, max_missed, window_scans : int
     entropy, sigma_m, voxel_m, max_points, voxel_max_points, warm_search_m_s, warm_voxel_grid
         The entropy refinement (:func:`refine_motion`); ``max_points`` (Rényi) and
@@ -233,6 +241,7 @@ class TrackerConfig:
     merge_m: float = 0.38
     share_m: float = 0.15
     coalesce_m: float = 0.25
+    merge_seen_apart: bool = True
     confirm_scans: int = 2
     max_missed: int = 25
     window_scans: int = 40
@@ -751,8 +760,10 @@ class Tracker:
         for b in range(len(objs)):
             if b in assign or b in supported:
                 continue
-            near = [(float(np.hypot(*(cents[b] - cents[bb]))), a) for bb, a in assign.items()]
-            near = [x for x in near if x[0] <= cfg.merge_m]
+            near = [(float(np.hypot(*(cents[b] - cents[bb]))), a, bb)
+                    for bb, a in assign.items()]
+            near = [x[:2] for x in near if x[0] <= cfg.merge_m and not (
+                cfg.merge_seen_apart and seen_apart(scan, objs[b], objs[x[2]]))]
             if near:
                 members[min(near)[1]].append(b)
             else:
@@ -781,7 +792,9 @@ class Tracker:
         groups: list[list[int]] = []
         for b in births:
             for g in groups:
-                if min(float(np.hypot(*(cents[b] - cents[bb]))) for bb in g) <= cfg.merge_m:
+                if min(float(np.hypot(*(cents[b] - cents[bb]))) for bb in g) <= cfg.merge_m \
+                        and not (cfg.merge_seen_apart
+                                 and any(seen_apart(scan, objs[b], objs[bb]) for bb in g)):
                     g.append(b)
                     break
             else:
