@@ -7,8 +7,13 @@ one at a time, to a :class:`~nodlidar.tracking.tracker.Tracker` (segmenting onli
 so far only) and keeps what the tracker said after every scan. The metrics only use what the
 live tracker reported at the time (causal):
 
-* **following**: in each scan, the track that took most of a mover's points (simulator truth
-  per beam) follows that mover;
+* **following**: in each scan, a track follows the mover that holds more than half of the
+  points it took in that scan (simulator truth per beam), and a mover is followed by the
+  track, of those following it, that took most of its points. Each track follows at most
+  one mover per scan, as CLEAR MOT matches each hypothesis to one object: a track that took
+  a few stray points of a neighbour (a person's edge beside another's cluster), or two
+  people in one cluster, follows its majority only, and the other mover is not followed in
+  that scan (a miss, not a change of identity);
 * **online convergence** of a mover: its estimates are those of the track following it, in
   the scans where one does (1-based count of those scans, as the paper counts scans with the
   object); the first count after which every estimate stays within ``V_TOL_M_S`` (0.01 m/s)
@@ -198,11 +203,14 @@ def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
     movers = []
     for k in range(len(res.scene.movers)):
         oid = 1 + k
-        # per scan, the track that took most of this mover's points
+        # per scan, of the tracks this mover is the majority of, the one that took most of
+        # its points (module docstring, "following")
         best: dict[int, dict] = {}
         for r in res.records:
             n = r["counts"].get(oid, 0)
-            if n and (r["scan"] not in best or n > best[r["scan"]]["counts"].get(oid, 0)):
+            if not n or 2 * n <= sum(r["counts"].values()):
+                continue
+            if r["scan"] not in best or n > best[r["scan"]]["counts"].get(oid, 0):
                 best[r["scan"]] = r
         seq = [best[s] for s in sorted(best)]
         tracks = [r["track"] for r in seq]
