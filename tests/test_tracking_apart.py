@@ -123,3 +123,37 @@ def test_people_walking_away_side_by_side_are_two_tracks_from_the_start(mirrors)
         movers, both = run(False)
         assert both[:3] == [1, 2, 3]  # the failure, without the test
         assert min(m["purity"] for m in movers) < 0.9
+
+
+def test_a_few_stray_points_do_not_make_a_track_follow_a_second_mover():
+    # a hand-made online result: track 1 follows A (30 points a scan), track 2 follows B;
+    # in scans 2 and 4 B is seen only as 1 stray point at the edge of A's cluster (track 1).
+    # Track 1 follows its majority (A) only: B is unfollowed there, not switched to track 1
+    # and back (before: 4 switches); a merged cluster (scan 5: 20 A, 25 B in track 1)
+    # follows B, its majority, and A is unfollowed in that scan
+    from nodlidar.sim.scene import scene_from_dict
+    from nodlidar.tracking.evaluate import OnlineResult, evaluate
+
+    sc = scene_from_dict({"name": "t", "mover": [
+        {"name": n, "radius_m": 0.18, "height_m": 1.7, "trajectory": "constant_velocity",
+         "start_m": [2.0, y, 0.0], "velocity_m_s": [0.3, 0.0, 0.0]}
+        for n, y in (("A", -0.21), ("B", 0.21))]})
+    res = OnlineResult(sc, True, "renyi", 0, 6)
+    for k in range(6):
+        t = 0.1 * k
+        a = {1: 30} if k not in (2, 4) else {1: 30, 2: 1}
+        if k == 5:
+            a = {1: 20, 2: 25}
+        res.records.append({"scan": k, "track": 1, "t_s": t, "x_m": 2.0 + 0.3 * t,
+                            "y_m": -0.21, "v_m_s": 0.3, "heading_rad": 0.0,
+                            "confirmed": True, "counts": a})
+        if k not in (2, 4, 5):
+            res.records.append({"scan": k, "track": 2, "t_s": t, "x_m": 2.0 + 0.3 * t,
+                                "y_m": 0.21, "v_m_s": 0.3, "heading_rad": 0.0,
+                                "confirmed": True, "counts": {2: 28}})
+        res.scan_t_s.append(t)
+        res.confirmed.append([])
+    a, b = evaluate(res)["movers"]
+    assert a["id_switches"] == 0 and a["tracks"] == [1] and a["scans_followed"] == 5
+    # B: track 2 in scans 0, 1, 3, then track 1 (its majority) in scan 5: one real change
+    assert b["tracks"] == [1, 2] and b["id_switches"] == 1 and b["scans_followed"] == 4
