@@ -347,10 +347,11 @@ def seen_apart(scan: ScanPoints, a: np.ndarray, b: np.ndarray, beyond_m: float =
     side; how far apart their centroids are does not tell (two people 0.42 m apart seen
     obliquely, a 0.6 m cart). The free space does. ``p`` and ``q`` are the closest pair of
     points of the two in the top view; a ray *passes between* them when, in the top view,
-    it crosses the middle ``middle`` of the segment ``p``-``q`` at a height where both
-    clusters have points (within ``z_tol_m``) and ends ``beyond_m`` or more past the crossing (a beam with no
-    return: at ``no_return_m``). The segment between two points of one convex object lies
-    inside it, where no ray goes; a beam through the gap between two people does.
+    it crosses the middle ``middle`` of the segment ``p``-``q`` between the lowest and the
+    highest point of the two (within ``z_tol_m``) and ends ``beyond_m`` or more past the
+    crossing (a beam with no return: at ``no_return_m``), on neither cluster. The segment
+    between two points of one convex object lies inside it, where no ray at its height
+    goes; a beam through the gap between two people does.
 
     Parameters
     ----------
@@ -364,10 +365,13 @@ def seen_apart(scan: ScanPoints, a: np.ndarray, b: np.ndarray, beyond_m: float =
         Share of the segment, centred, that the ray must cross (0..1): a ray that grazes
         one cluster's noisy edge crosses the segment near its end.
     z_tol_m : float
-        Margin [m] on the heights where both clusters have points. 0 by default: a ray
-        just over an object's top is no evidence of a gap (measured with 0.1 m: a 0.5 m
-        tall box's front and side faces, 0.42-0.45 m high, were "seen apart" by rays
-        passing over its top, and a second track took the box).
+        Margin [m] on the clusters' heights (lowest to highest point of either). 0 by
+        default: a ray just over an object's top is no evidence of a gap (measured with
+        0.1 m: a 0.5 m tall box's front and side faces, 0.42-0.45 m high, were "seen
+        apart" by rays passing over its top, and a second track took the box). Not only
+        the heights where *both* have points: one tilted scan line sees two people side by
+        side at slightly different ranges, so at heights that overlap by millimetres, and
+        the beams through the gap between them missed that overlap.
     no_return_m : float
         Length [m] of a beam with no return (it went through).
 
@@ -385,11 +389,11 @@ def seen_apart(scan: ScanPoints, a: np.ndarray, b: np.ndarray, beyond_m: float =
     e = q - p
     if float(np.hypot(*e)) <= 0:
         return False
-    # heights where both clusters have points
-    z0 = max(float(pa[:, 2].min()), float(pb[:, 2].min())) - z_tol_m
-    z1 = min(float(pa[:, 2].max()), float(pb[:, 2].max())) + z_tol_m
-    if z1 < z0:
-        return False
+    # heights where the clusters have points: a ray within them that crosses the chord of
+    # one convex object in the top view would have hit it; above the highest point (over a
+    # box's top) it is no evidence
+    z0 = min(float(pa[:, 2].min()), float(pb[:, 2].min())) - z_tol_m
+    z1 = max(float(pa[:, 2].max()), float(pb[:, 2].max())) + z_tol_m
     s3, d3 = scan.ray_start, scan.ray_dir
     length = np.where(scan.valid, scan.range_m - scan.ray_offset, no_return_m)
     # top view: s + t d = p + u e (t: path length along the 3D unit direction)
@@ -403,6 +407,11 @@ def seen_apart(scan: ScanPoints, a: np.ndarray, b: np.ndarray, beyond_m: float =
     lo = 0.5 - middle / 2
     hit = ok & (t > 0) & (u >= lo) & (u <= 1 - lo) & (z >= z0) & (z <= z1) & \
         (length >= t + beyond_m)
+    # a ray that ends on one of the two went into it, not between them (a noisy face:
+    # a point 5 cm in front of a box's face and a beam 8 cm behind it, through the chord
+    # between two of the face's points)
+    hit[a] = False
+    hit[b] = False
     return bool(hit.any())
 
 

@@ -98,6 +98,13 @@ class TrackerConfig:
         centroids came within 0.38 m: walking away side by side, seen obliquely, or close
         to the sensor, one track took both for their first scans (docs/tracking.md "Two
         objects or one"). False: ``merge_m`` alone.
+    hold_seen_apart : bool
+        A track does not take a cluster when its predicted position lies on another,
+        nearer cluster of the scan that is not dynamic and that the scan saw free space
+        between (its object is there, only not seen moving in this scan: a person walking
+        away, or slowly, is dynamic in some scans only). Two people side by side, one of
+        them dynamic in a scan: the other's young track, whose gate still spans both, took
+        the one seen (docs/tracking.md "Two objects or one").
     confirm_scans, max_missed, window_scans : int
     entropy, sigma_m, voxel_m, max_points, voxel_max_points, warm_search_m_s, warm_voxel_grid
         The entropy refinement (:func:`refine_motion`); ``max_points`` (Rényi) and
@@ -242,6 +249,7 @@ class TrackerConfig:
     share_m: float = 0.15
     coalesce_m: float = 0.25
     merge_seen_apart: bool = True
+    hold_seen_apart: bool = True
     confirm_scans: int = 2
     max_missed: int = 25
     window_scans: int = 40
@@ -368,6 +376,7 @@ _EPOCH = _dt.datetime(2000, 1, 1, tzinfo=_dt.UTC)
 _TAKEN_SCANS = 60  # the online segmenter's window: static support older than it is forgotten
 _BIRTH_SIGMA_V_M_S = 0.5  # velocity sigma of a new track: a person walks at most ~1.5 m/s (3 sigma)
 _SURE_SIGMAS = 3.0  # a track surely moves when its speed is this many sigmas from zero
+_HOLD_M = 0.15  # hold_seen_apart: a cluster this near a track's prediction holds it
 _FORGET_VAR_M2_S2 = 100.0  # a prior velocity variance that carries no information (10 m/s sigma)
 
 
@@ -493,6 +502,37 @@ class Tracker:
         P = np.asarray(self._predict(tr, t).covar, float)[np.ix_([1, 3], [1, 3])]
         u = v / speed
         return speed >= _SURE_SIGMAS * float(np.sqrt(max(u @ P @ u, 0.0)))
+
+    def _hold(self, seg: Segmented, ids: list, objs: list, cost: np.ndarray, big: float,
+              turn_priors: dict) -> None:
+        """Forbid (in ``cost``, in place) a track a cluster when its predicted position lies
+        on another cluster of the scan, not dynamic, nearer than the first and seen apart
+        from it (:func:`~nodlidar.tracking.segment.seen_apart`): the track's object is still
+        there, only not seen moving in this scan (TrackerConfig.hold_seen_apart)."""
+        from scipy.spatial import cKDTree
+
+        scan = seg.scan
+        rest = np.flatnonzero((seg.cluster >= 0) & ~seg.dynamic)
+        if not len(rest):
+            return
+        tree = cKDTree(scan.points[rest, :2])
+        for a, tid in enumerate(ids):
+            cols = np.flatnonzero(cost[a] < big)
+            if not len(cols):
+                continue
+            m = np.asarray(self._predict(self.tracks[tid], scan.t_mid_s).state_vector,
+                           float).ravel()[[0, 2]]
+            near = tree.query_ball_point(m, _HOLD_M)
+            if not near:
+                continue
+            lab = np.bincount(seg.cluster[rest[near]]).argmax()
+            other = np.flatnonzero((seg.cluster == lab) & ~seg.dynamic)
+            d_other = float(np.min(np.hypot(*(scan.points[other, :2] - m).T)))
+            for b in cols:
+                d_b = float(np.min(np.hypot(*(scan.points[objs[b], :2] - m).T)))
+                if d_other < d_b and seen_apart(scan, objs[b], other):
+                    cost[a, b] = big
+                    turn_priors.pop((a, b), None)
 
     def _gate_m(self, tr: _Track, t: float) -> float:
         """Distance gate [m] of ``tr`` for a cluster at time ``t`` [s]: ``gate_m``, grown
@@ -705,6 +745,9 @@ class Tracker:
                 if reach > 0 and dl <= reach:
                     cost[a, b] = cfg.gate_chi2 + (dl / reach) ** 2
                     turn_priors[a, b] = self._birth(c, t)
+        if cfg.hold_seen_apart and len(ids) and len(objs) and \
+                getattr(seg, "cluster", None) is not None:
+            self._hold(seg, ids, objs, cost, big, turn_priors)
         assign: dict[int, int] = {}
         if len(ids) and len(objs):
             rows, cols = linear_sum_assignment(cost)
