@@ -70,27 +70,48 @@ def test_a_gap_between_two_people_is_seen_but_not_inside_one_object():
 def test_the_gap_must_be_at_the_objects_height():
     # the same gap seen only by rays above both clusters (the clusters' points at z 0.5 m,
     # the rays at 1.2 m: over two low boxes, not between them; over one box's top, the
-    # chord between its faces would be crossed too)
+    # chord between its faces would be crossed too). The beams between the two are put in
+    # another window, so that only the rays can tell (one window's scan line is the
+    # other test, below)
     scan, obj = _scan([(2.0, -0.21, 0.18), (2.0, 0.21, 0.18)])
     a, b = np.flatnonzero(obj == 1), np.flatnonzero(obj == 2)
-    high = ScanPoints(0, scan.steps, scan.t_s, scan.mirror, scan.range_m, scan.points,
-                      scan.ray_start + np.array([0.0, 0.0, 0.7]), scan.ray_dir, scan.ray_offset)
-    # keep the clusters' points at 0.5 m but let every ray run at 1.2 m
-    pts = high.points.copy()
+    mirror = np.where(obj == 0, 1, -1)
+    pts = scan.points.copy()
     pts[:, 2] = 0.5
-    high = ScanPoints(0, scan.steps, scan.t_s, scan.mirror, scan.range_m, pts,
-                      high.ray_start, scan.ray_dir, scan.ray_offset)
+    high = ScanPoints(0, scan.steps, scan.t_s, mirror, scan.range_m, pts,
+                      scan.ray_start + np.array([0.0, 0.0, 0.7]), scan.ray_dir, scan.ray_offset)
     assert not seen_apart(high, a, b)
+    low = ScanPoints(0, scan.steps, scan.t_s, mirror, scan.range_m, pts, scan.ray_start,
+                     scan.ray_dir, scan.ray_offset)
+    assert seen_apart(low, a, b)
 
 
-def test_a_ray_must_go_on_past_the_gap():
-    # two discs one behind the other along the line of sight, the far one wider: every ray
-    # that crosses the segment between their closest points ends on the far disc within a
-    # few cm (no free space seen beyond), so with beyond_m above that they are not apart
-    scan, obj = _scan([(1.5, 0.0, 0.1), (1.82, 0.0, 0.2)])
+def test_one_behind_the_other_is_a_jump_in_depth_not_a_grazing_surface():
+    # a disc partly behind another, to one side: no ray reaches the free space
+    # between them (every beam past the front disc's edge ends on the far one), but the
+    # scan line jumps in depth at the front one's edge, once
+    scan, obj = _scan([(1.5, 0.0, 0.1), (1.82, 0.15, 0.2)])
     a, b = np.flatnonzero(obj == 1), np.flatnonzero(obj == 2)
     assert len(a) and len(b)
-    assert not seen_apart(scan, a, b, beyond_m=0.1)
+    assert seen_apart(scan, a, b)
+    # a wall seen at 70-80 deg incidence, split into two clusters: it recedes by a similar
+    # step at every beam, so the step between the two is no occlusion
+    th = np.arange(int(np.radians(70) / STEP), int(np.radians(80) / STEP) + 1) * STEP
+    r = 0.8 / np.cos(th)
+    d = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], axis=1)
+    n = len(th)
+    wall = ScanPoints(0, np.arange(n), np.zeros(n), np.full(n, -1), r, r[:, None] * d,
+                      np.zeros((n, 3)), d, np.zeros(n))
+    half = n // 2
+    assert not seen_apart(wall, np.arange(half), np.arange(half + 1, n))
+    # one person with a thin pole in front of it: its two sides are two clusters, with two
+    # jumps between them (to the pole and back) - a third object, not one behind the other
+    pole, objp = _scan([(2.0, 0.0, 0.2), (1.5, 0.0, 0.03)])
+    person = np.flatnonzero(objp == 1)
+    left, right = person[person < np.flatnonzero(objp == 2).min()], \
+        person[person > np.flatnonzero(objp == 2).max()]
+    assert len(left) and len(right)
+    assert not seen_apart(pole, left, right)
 
 
 @pytest.mark.parametrize("mirrors", [True, False])
