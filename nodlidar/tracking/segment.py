@@ -340,7 +340,9 @@ def window_cut(scan: ScanPoints, idx: np.ndarray, reach_m: float = 0.0,
 
 def seen_apart(scan: ScanPoints, a: np.ndarray, b: np.ndarray, beyond_m: float = 0.1,
                middle: float = 0.6, z_tol_m: float = 0.0, no_return_m: float = 5.0) -> bool:
-    """Whether the scan saw free space between two clusters: a ray that passes between them.
+    """Whether the scan saw two clusters apart: a ray that passes between them, or a single
+    jump in depth from one to the other along a window's scan line (one partly behind the
+    other's edge, :func:`_occluded_between`).
 
     Two clusters of one scan can be two pieces of one object (its faces seen through
     different mirror windows, or parts the segmentation split) or two objects side by
