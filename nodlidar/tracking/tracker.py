@@ -93,11 +93,12 @@ class TrackerConfig:
     merge_seen_apart : bool
         Two clusters that the scan saw apart
         (:func:`~nodlidar.tracking.segment.seen_apart`: a ray passed between them, or the
-        scan line jumps once in depth from one to the other) are two objects, however close: neither joins the other as a piece (``merge_m``). Centroid
-        distance alone merged two people 0.42-0.45 m apart wherever their visible sides'
-        centroids came within 0.38 m: walking away side by side, seen obliquely, or close
-        to the sensor, one track took both for their first scans (docs/tracking.md "Two
-        objects or one"). False: ``merge_m`` alone.
+        scan line jumps once in depth from one to the other) are two objects, however
+        close: neither joins the other as a piece (``merge_m``). Centroid distance alone
+        merged two people 0.42-0.45 m apart wherever their visible sides' centroids came
+        within 0.38 m: walking away side by side, seen obliquely, or close to the sensor,
+        one track took both for their first scans (docs/tracking.md "Two objects or
+        one"). False: ``merge_m`` alone.
     hold_seen_apart : bool
         A track does not take a cluster when its predicted position lies on another,
         nearer cluster of the scan that is not dynamic and that the scan saw apart from the
