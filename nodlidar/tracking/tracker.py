@@ -505,11 +505,12 @@ class Tracker:
         return speed >= _SURE_SIGMAS * float(np.sqrt(max(u @ P @ u, 0.0)))
 
     def _hold(self, seg: Segmented, ids: list, objs: list, cost: np.ndarray, big: float,
-              turn_priors: dict) -> None:
+              priors: dict, turn_priors: dict) -> None:
         """Forbid (in ``cost``, in place) a track a cluster when its predicted position lies
         on another cluster of the scan, not dynamic, nearer than the first and seen apart
         from it (:func:`~nodlidar.tracking.segment.seen_apart`): the track's object is still
-        there, only not seen moving in this scan (TrackerConfig.hold_seen_apart)."""
+        there, only not seen moving in this scan (TrackerConfig.hold_seen_apart). The
+        prediction is the gating's own (``priors``, at the first gated cluster's time)."""
         from scipy.spatial import cKDTree
 
         scan = seg.scan
@@ -521,8 +522,10 @@ class Tracker:
             cols = np.flatnonzero(cost[a] < big)
             if not len(cols):
                 continue
-            m = np.asarray(self._predict(self.tracks[tid], scan.t_mid_s).state_vector,
-                           float).ravel()[[0, 2]]
+            prior = next((priors[a, int(b)] for b in cols if (a, int(b)) in priors), None)
+            if prior is None:  # turn pairs only: their prior is the cluster, not a prediction
+                prior = self._predict(self.tracks[tid], scan.t_mid_s)
+            m = np.asarray(prior.state_vector, float).ravel()[[0, 2]]
             near = tree.query_ball_point(m, _HOLD_M)
             if not near:
                 continue
@@ -748,7 +751,7 @@ class Tracker:
                     turn_priors[a, b] = self._birth(c, t)
         if cfg.hold_seen_apart and len(ids) and len(objs) and \
                 getattr(seg, "cluster", None) is not None:
-            self._hold(seg, ids, objs, cost, big, turn_priors)
+            self._hold(seg, ids, objs, cost, big, priors, turn_priors)
         assign: dict[int, int] = {}
         if len(ids) and len(objs):
             rows, cols = linear_sum_assignment(cost)
