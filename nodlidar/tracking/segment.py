@@ -34,7 +34,8 @@ from .scans import ScanPoints
 from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap
 
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch",
-           "OnlineSegmenter", "window_cut", "grazing_secant", "seen_apart"]
+           "OnlineSegmenter", "window_cut", "grazing_secant", "seen_apart",
+           "seen_through"]
 
 
 @dataclass(frozen=True)
@@ -336,6 +337,58 @@ def window_cut(scan: ScanPoints, idx: np.ndarray, reach_m: float = 0.0,
     for m in cut_win:
         cut |= win == m
     return cut
+
+
+def seen_through(scan: ScanPoints, idx: np.ndarray, keys: np.ndarray, grid: VoxelGrid,
+                 margin_m: float | np.ndarray, reach_m: float) -> np.ndarray:
+    """Which beams pass, shortly before their end point, through voxels in ``keys``.
+
+    The evidence "occupied, then seen through" for one object: ``keys`` are the voxels an
+    object's earlier points filled; a beam that now crosses one of them within ``reach_m``
+    before its own end point (and more than ``margin_m`` before it: its own surface's
+    voxel) sees the space that object left, and ends just behind it. A person walking
+    straight away from the sensor shows no other evidence of moving: the space its back
+    moves into was behind it, never seen free ("free, then occupied" is blind to it), but
+    the rays now pass through where its back was.
+
+    Parameters
+    ----------
+    scan : ScanPoints
+    idx : (k,) int
+        Beam indices to test (beams without a return test False).
+    keys : (m,) int64
+        Voxel keys (``grid.keys``) of the object's earlier points; need not be sorted.
+    grid : VoxelGrid
+    margin_m : float or (k,) float
+        Nothing within this of a beam's end point counts [m] (the carving margin).
+    reach_m : float
+        Only this much of each beam before its end point is tested [m].
+
+    Returns
+    -------
+    (k,) bool
+    """
+    idx = np.asarray(idx, np.int64)
+    out = np.zeros(len(idx), bool)
+    keys = np.unique(np.asarray(keys, np.int64))
+    if not len(idx) or not len(keys):
+        return out
+    length = scan.range_m[idx] - scan.ray_offset[idx]  # along the outgoing ray [m]
+    ok = np.isfinite(length)
+    if not ok.any():
+        return out
+    step = grid.voxel_m / 2  # a sample in every voxel the segment crosses
+    length = np.where(ok, length, 0.0)
+    end = np.where(ok, length - margin_m, -1.0)
+    s = np.maximum(length - reach_m, 0.0)[:, None] + step * np.arange(
+        int(np.ceil(reach_m / step)) + 1)[None, :]  # (k, n) distances along each ray
+    use = s <= end[:, None]
+    if not use.any():
+        return out
+    pts = scan.ray_start[idx][:, None, :] + s[..., None] * scan.ray_dir[idx][:, None, :]
+    k = grid.keys(pts.reshape(-1, 3)).reshape(s.shape)
+    i = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+    return np.any(use & (keys[i] == k), axis=1)
 
 
 def seen_apart(scan: ScanPoints, a: np.ndarray, b: np.ndarray, beyond_m: float = 0.1,
