@@ -846,7 +846,8 @@ def test_a_one_scan_track_is_reacquired_after_a_gap(speed):
     # same shape, so the centroid moves exactly with the object; 1e-3 m/s is the Newton
     # minimiser's tolerance on exact data, two orders below the 0.3 m/s measured).
     v = np.array([-0.282, 0.103])
-    trk = Tracker(TrackerConfig(reacquire_speed_m_s=speed))
+    # (the re-acquisition of lone tracks by new objects off: this is the general option)
+    trk = Tracker(TrackerConfig(reacquire_speed_m_s=speed, reacquire_births_m_s=0.0))
     segs = [_ArcSeg(k, [3.3, 0.2], v, seen=k in (0, 23)) for k in range(24)]
     for seg in segs:
         trk.update(seg)
@@ -872,7 +873,7 @@ def test_reacquisition_gate_is_the_speed_times_the_gap(factor, same):
     speed = 1.0
     dt = 1.0  # centroid times: both arcs span 0.09 s of one scan, 10 scans apart
     v_jump = factor * speed * dt
-    trk = Tracker(TrackerConfig(reacquire_speed_m_s=speed))
+    trk = Tracker(TrackerConfig(reacquire_speed_m_s=speed, reacquire_births_m_s=0.0))
     trk.update(_ArcSeg(0, [3.0, 0.0], [0.0, 0.0]))
     for k in range(1, 10):
         trk.update(_ArcSeg(k, [3.0, 0.0], [0.0, 0.0], seen=False))

@@ -185,6 +185,19 @@ class TrackerConfig:
         0.6 m gate, so a new track took the person (an identity switch). The chi-square
         gate still applies (the birth velocity's 0.5 m/s sigma grows the predicted
         position's covariance with ``dt``).
+    reacquire_births_m_s : float
+        A new object (a dynamic cluster no track took) is, instead of a new track, the
+        continuation of a *lone* track - one without a velocity yet, not seen in this scan -
+        that could have got there at this speed [m/s], when nothing else could be it: no
+        other cluster of the scan (dynamic or not, taken or not) is nearer to where the
+        track was, and no other lone track claims the cluster. A person seen in one scan
+        before the nod's blind part (mirrors, 3.5 m out: every ray of the lower nod hits
+        the floor before them for 10 scans) is 1.2 m on at 0.6 m/s when seen again, beyond
+        any gate of a track without a velocity. Re-acquisition without the nearest-cluster
+        guard (measured, docs/tracking.md "Re-acquisition of lone tracks") gave a lone
+        track to another person while its own was not dynamic, or was in a cluster a ghost
+        had taken, and start-up ghosts on furniture (the furniture is always nearest to a
+        ghost's place) reached movers. 0: off.
     turn_reach_m : float
         A track with a velocity, seen in one of the last ``turn_scans`` scans, may take a
         cluster that fails its constant-velocity gates but lies within ``turn_reach_m`` +
@@ -293,6 +306,7 @@ class TrackerConfig:
     renyi_pairs: str = "adaptive"
     renyi_all_pairs_scans: int = 6
     reacquire_speed_m_s: float = 0.0
+    reacquire_births_m_s: float = 1.5
     follow_supported_m_s: float = 0.1
     window_cut_speed_m_s: float = 0.1
     window_cut_drop_m_s: float = 0.4
@@ -314,6 +328,8 @@ class TrackerConfig:
         require(self.velocity_fusion in FUSIONS, "velocity_fusion",
                 self.velocity_fusion, ", ".join(FUSIONS))
         require(self.gate_m > 0, "gate_m", self.gate_m, "> 0 m")
+        require(self.reacquire_births_m_s >= 0, "reacquire_births_m_s",
+                self.reacquire_births_m_s, ">= 0 m/s (0: off)")
         require(self.reacquire_speed_m_s >= 0, "reacquire_speed_m_s", self.reacquire_speed_m_s,
                 ">= 0 m/s")
         require(self.gate_chi2 > 0, "gate_chi2", self.gate_chi2, "> 0")
@@ -645,6 +661,45 @@ class Tracker:
             assign[len(objs) - 1] = a
             priors[a, len(objs) - 1] = prior
 
+    def _reacquire(self, seg: Segmented, ids: list, births: list, objs: list, cents: list,
+                   times: list, members: dict, priors: dict) -> list:
+        """Give lone tracks the new clusters they continue (``reacquire_births_m_s``;
+        ``members`` and ``priors`` in place). Returns the births left."""
+        cfg = self.config
+        scan = seg.scan
+        lone = [a for a, tid in enumerate(ids) if a not in members
+                and self.tracks[tid].motion is None and self.tracks[tid].last_scan < scan.scan]
+        if not lone or not births:
+            return births
+        lab = getattr(seg, "cluster", None)
+        xy = scan.points[:, :2]
+        claims: dict[int, list[int]] = {}  # birth -> the lone tracks it may continue
+        for a in lone:
+            tr = self.tracks[ids[a]]
+            d = np.hypot(*(xy - tr.centroids[-1]).T)
+            for b in births:
+                dt = times[b] - tr.t_centroids[-1]
+                if float(np.hypot(*(cents[b] - tr.centroids[-1]))) > cfg.reacquire_births_m_s * dt:
+                    continue
+                if lab is not None:
+                    # no other cluster of the scan (dynamic or not, taken or not) nearer to
+                    # where the track was: its object may be there, only not moving in this
+                    # scan, or in a cluster another track took, or in the furniture it
+                    # was a ghost on
+                    other = (lab >= 0) & ~np.isin(lab, lab[objs[b]])
+                    if other.any() and float(d[other].min()) < float(d[objs[b]].min()):
+                        continue
+                claims.setdefault(b, []).append(a)
+        got = []
+        for b, cl in claims.items():
+            if len(cl) != 1 or sum(cl[0] in c for c in claims.values()) != 1:
+                continue  # ambiguous: a track seen once has only its place to go by
+            a = cl[0]
+            members[a] = [b]
+            priors[a, b] = self._predict(self.tracks[ids[a]], times[b])
+            got.append(b)
+        return [b for b in births if b not in got]
+
     def _gate_m(self, tr: _Track, t: float) -> float:
         """Distance gate [m] of ``tr`` for a cluster at time ``t`` [s]: ``gate_m``, grown
         to ``reacquire_speed_m_s * (t - last seen)`` while the track has no velocity
@@ -924,6 +979,8 @@ class Tracker:
                 members[min(near)[1]].append(b)
             else:
                 births.append(b)
+        if cfg.reacquire_births_m_s > 0:
+            births = self._reacquire(seg, ids, births, objs, cents, times, members, priors)
         changed = []
         for a, bs in members.items():
             tr = self.tracks[ids[a]]
