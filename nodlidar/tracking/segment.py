@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import require
 from .scans import ScanPoints
-from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap
+from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap, carve_samples
 
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch",
            "OnlineSegmenter", "window_cut", "grazing_secant", "seen_apart",
@@ -373,22 +373,19 @@ def seen_through(scan: ScanPoints, idx: np.ndarray, keys: np.ndarray, grid: Voxe
     keys = np.unique(np.asarray(keys, np.int64))
     if not len(idx) or not len(keys):
         return out
-    length = scan.range_m[idx] - scan.ray_offset[idx]  # along the outgoing ray [m]
-    ok = np.isfinite(length)
-    if not ok.any():
+    length = np.nan_to_num(scan.range_m[idx] - scan.ray_offset[idx], nan=0.0)  # [m]
+    s0 = np.maximum(length - reach_m, 0.0)  # where the tested part of each ray starts
+    free = length - margin_m - s0  # its length (<= 0: nothing; no return: 0)
+    step = grid.voxel_m / 2  # a sample in every voxel the part crosses
+    d = scan.ray_dir[idx]
+    pts = carve_samples(scan.ray_start[idx] + s0[:, None] * d, d, free, step)
+    if not len(pts):
         return out
-    step = grid.voxel_m / 2  # a sample in every voxel the segment crosses
-    length = np.where(ok, length, 0.0)
-    end = np.where(ok, length - margin_m, -1.0)
-    s = np.maximum(length - reach_m, 0.0)[:, None] + step * np.arange(
-        int(np.ceil(reach_m / step)) + 1)[None, :]  # (k, n) distances along each ray
-    use = s <= end[:, None]
-    if not use.any():
-        return out
-    pts = scan.ray_start[idx][:, None, :] + s[..., None] * scan.ray_dir[idx][:, None, :]
-    k = grid.keys(pts.reshape(-1, 3)).reshape(s.shape)
+    cnt = np.maximum(np.ceil(np.maximum(free, 0.0) / step).astype(np.int64), 0)
+    k = grid.keys(pts)
     i = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
-    return np.any(use & (keys[i] == k), axis=1)
+    return np.bincount(np.repeat(np.arange(len(idx)), cnt), weights=keys[i] == k,
+                       minlength=len(idx)) > 0
 
 
 def seen_apart(scan: ScanPoints, a: np.ndarray, b: np.ndarray, beyond_m: float = 0.1,
