@@ -1,5 +1,6 @@
-"""A lone track keeps its object across the nod's blind part: a new object that nothing but
-a track seen once could be continues it (``TrackerConfig.reacquire_births_m_s``)."""
+"""Tracks across the nod's blind part: a new object that nothing but a track seen once could
+be continues it (``TrackerConfig.reacquire_births_m_s``); a young track's vague prediction
+does not win a sure track's cluster (``TrackerConfig.assign_likelihood``)."""
 
 from __future__ import annotations
 
@@ -52,7 +53,7 @@ def test_a_person_seen_once_before_the_blind_part_keeps_the_track(seed):
 class _Arcs:
     """Stub of Segmented: scan ``k``, a 40-point arc of a 0.18 m cylinder (facing the
     sensor at the origin) at each of ``movers`` (dynamic clusters, in this order) and of
-    ``still`` (returns that no cluster is dynamic on), or nothing."""
+    ``still`` (returns that no cluster is dynamic on), or nothing (one beam, no return)."""
 
     def __init__(self, k: int, movers=(), still=()):
         arcs = []
@@ -60,13 +61,14 @@ class _Arcs:
             ang = np.linspace(-1.0, 1.0, 40) + np.arctan2(c[1], c[0])
             xy = np.asarray(c) - 0.18 * np.column_stack([np.cos(ang), np.sin(ang)])
             arcs.append(np.column_stack([xy, np.linspace(0.2, 1.0, 40)]))
-        pts = np.concatenate(arcs) if arcs else np.zeros((0, 3))
+        pts = np.concatenate(arcs) if arcs else np.full((1, 3), np.nan)
         n = len(pts)
         t = k * 0.1 + np.linspace(0, 0.09, n)
-        self.scan = ScanPoints(k, np.arange(n), t, np.full(n, -1), np.ones(n), pts, pts, pts,
+        self.scan = ScanPoints(k, np.arange(n), t, np.full(n, -1),
+                               np.where(np.isnan(pts[:, 0]), np.nan, 1.0), pts, pts, pts,
                                np.zeros(n))
         self._n = len(movers)
-        self.cluster = np.repeat(np.arange(len(arcs)), 40)
+        self.cluster = np.repeat(np.arange(len(arcs)), 40) if arcs else np.full(1, -1)
         self.dynamic = self.cluster < self._n
         self.ground = np.zeros(n, bool)
 
@@ -106,3 +108,85 @@ def test_a_lone_track_takes_the_new_object_nothing_else_could_be():
     # farther (3.8 m) than 1.5 m/s could have gone in the 2.3 s (3.4 m): a new object
     trk = _run(first + gap + [_Arcs(23, [(0.6, -2.6)])])
     assert sorted(trk.tracks) == [1, 2]
+
+
+def _vague_on_sure(**config):
+    """Track 1 (sure: 10 scans at 0.4 m/s along +y) and track 2 (seen in scans 8 and 9 only,
+    its two-scan velocity pointing across track 1's path), then ten scans of nothing, then
+    one cluster, put where track 2's prediction is: 1.1 s on, track 2's position sd is
+    ~0.14 m, track 1's 0.05 m, and the cluster is track 1's object, 0.08 m off its
+    prediction."""
+    trk = Tracker(TrackerConfig(**config))
+
+    def a(k):
+        return (2.0, -1.0 + 0.04 * k)
+
+    for k in range(10):
+        trk.update(_Arcs(k, [a(k)] + ([(2.5 - 0.045 * (k - 9), -0.64 + 0.04 * (k - 9))]
+                                      if k >= 8 else [])))
+    for k in range(10, 20):
+        trk.update(_Arcs(k))
+    probe = _Arcs(20, [a(20)])
+    t = float(probe.scan.t_s.mean())
+    pred = [np.asarray(trk._predict(trk.tracks[i], t).state_vector, float).ravel()[[0, 2]]
+            for i in (1, 2)]
+    at = np.array(a(20)) + pred[1] - probe.scan.points[:, :2].mean(axis=0)
+    scan = _Arcs(20, [tuple(at)])
+    c = scan.scan.points[:, :2].mean(axis=0)
+    cov = [np.asarray(trk._predict(trk.tracks[i], t).covar, float)[np.ix_([0, 2], [0, 2])]
+           for i in (1, 2)]
+    trk.update(scan)
+    return trk, c, pred, cov
+
+
+def test_a_vague_prediction_does_not_win_a_sure_tracks_cluster():
+    trk, c, pred, cov = _vague_on_sure()
+    # the set-up: the cluster is on track 2's prediction, 0.05-0.1 m off track 1's, and
+    # track 2's prediction is the vaguer by far (so nearer in its own sigmas)
+    # (within 1 cm: moved, the arc turns to face the sensor and its centroid shifts by mm)
+    np.testing.assert_allclose(c, pred[1], atol=0.01)
+    assert 0.05 < np.hypot(*(c - pred[0])) < 0.1
+    assert np.sqrt(np.linalg.eigvalsh(cov[1])[-1]) > 2 * np.sqrt(np.linalg.eigvalsh(cov[0])[-1])
+    d2 = [float((c - p) @ np.linalg.solve(S + np.eye(2) * 0.01, c - p)) for p, S in zip(pred, cov)]
+    assert d2[1] < d2[0]
+    # by likelihood: track 1 takes it; track 2 coasts on, free to take its own object
+    assert sorted(trk.tracks) == [1, 2]
+    assert trk.tracks[1].last_scan == 20 and trk.tracks[2].last_scan == 9
+    # by d^2 alone: track 2 took it, track 1 shared it, and the younger ended
+    trk, *_ = _vague_on_sure(assign_likelihood=False)
+    assert sorted(trk.tracks) == [1]
+    assert [(t.track_id, t.last_scan) for t in trk.ended] == [(2, 20)]
+
+
+@pytest.mark.parametrize("seed", [2, 4])
+def test_side_by_side_on_the_diagonal_keeps_both_tracks(seed):
+    """``design/scenes/track-side-by-side-diagonal.toml``, mirrors: the right person is seen
+    in scans 12 and 13, then the nod's lower part sees the floor before them for ten scans;
+    their track's two-scan velocity is 0.6 m/s at ~85 deg (truth 0.4 at 45), so 1.1 s on
+    its prediction falls on the left person. Measured, 45 scans, seeds 0-7, by d^2 alone /
+    by likelihood: that track won the left person's cluster, was coalesced into the left
+    track, and the right person got a second track in seeds 2 and 4 / one track each in
+    all 8."""
+    from nodlidar.paper import PAPER_DESIGN
+    from nodlidar.sim.scene import load_scene
+    from nodlidar.solver import solve
+    from nodlidar.spec import load_design
+    from nodlidar.tracking.evaluate import HEADING_TOL_DEG, V_TOL_M_S, evaluate, run_online
+
+    design = solve(load_design(PAPER_DESIGN))
+    sc = load_scene(SCENES / "track-side-by-side-diagonal.toml")
+
+    def run(likelihood: bool):
+        res = run_online(design, sc, 45, mirrors_deployed=True, seed=seed,
+                         tracker=TrackerConfig(assign_likelihood=likelihood))
+        return {m["mover"]: m for m in evaluate(res)["movers"]}
+
+    on = run(True)
+    for m in on.values():
+        assert m["id_switches"] == 0 and len(m["tracks"]) == 1 and m["purity"] >= 0.99, m
+        assert m["conv"] is not None, m
+        assert abs(m["final_err_v_m_s"]) <= V_TOL_M_S
+        assert abs(m["final_err_heading_deg"]) <= HEADING_TOL_DEG
+    assert on["left"]["tracks"] != on["right"]["tracks"]
+    off = run(False)  # the failure, without: a second track for the right person
+    assert off["right"]["id_switches"] == 1 and len(off["right"]["tracks"]) == 2, off["right"]
