@@ -388,6 +388,57 @@ def seen_through(scan: ScanPoints, idx: np.ndarray, keys: np.ndarray, grid: Voxe
                        minlength=len(idx)) > 0
 
 
+def behind_or_through(scan: ScanPoints, center_xy: np.ndarray, radius_m: float,
+                      z_m: tuple[float, float], margin_m: float,
+                      beams: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """How the scan's beams meet a vertical column where an object is predicted to be.
+
+    The column is a cylinder of ``radius_m`` about ``center_xy`` between heights ``z_m``.
+    A beam whose ray enters it (at a height within ``z_m``) either ends more than
+    ``margin_m`` before it - something nearer hides whatever is there - or more than
+    ``margin_m`` beyond it - the column is free: nothing is there. Beams that end inside
+    (the object's own surface, or something at its place) and beams without a return
+    count as neither.
+
+    Parameters
+    ----------
+    scan : ScanPoints
+    center_xy : (2,) float
+        Column axis, ground plane [m].
+    radius_m : float
+        Column radius [m].
+    z_m : (2,) float
+        Lowest and highest height of the column [m].
+    margin_m : float
+        [m].
+    beams : (k,) int, optional
+        Only these beams (indices into the scan); default all.
+
+    Returns
+    -------
+    hidden : (h,) int
+        Indices of the beams that end in front of the column.
+    n_through : int
+        Beams that pass through it.
+    """
+    ok = np.arange(len(scan.range_m)) if beams is None else np.asarray(beams, np.int64)
+    rng = scan.range_m[ok] - scan.ray_offset[ok]
+    ok, length = ok[np.isfinite(rng)], rng[np.isfinite(rng)]
+    p0, d = scan.ray_start[ok], scan.ray_dir[ok]
+    dxy2 = np.einsum("ij,ij->i", d[:, :2], d[:, :2])
+    ok2 = dxy2 > 1e-6  # a (near) vertical ray meets no column side on
+    ok, p0, d, length, dxy2 = ok[ok2], p0[ok2], d[ok2], length[ok2], dxy2[ok2]
+    rel = np.asarray(center_xy, float) - p0[:, :2]
+    s_mid = np.einsum("ij,ij->i", rel, d[:, :2]) / dxy2  # path length of closest approach
+    miss2 = np.einsum("ij,ij->i", rel, rel) - s_mid ** 2 * dxy2  # squared distance there
+    half = np.sqrt(np.maximum(radius_m ** 2 - miss2, 0.0) / dxy2)
+    z = p0[:, 2] + s_mid * d[:, 2]
+    meets = (miss2 <= radius_m ** 2) & (s_mid > 0) & (z >= z_m[0]) & (z <= z_m[1])
+    hidden = meets & (length < s_mid - half - margin_m)
+    through = meets & (length > s_mid + half + margin_m)
+    return ok[hidden], int(through.sum())
+
+
 def seen_apart(scan: ScanPoints, a: np.ndarray, b: np.ndarray, beyond_m: float = 0.1,
                middle: float = 0.6, z_tol_m: float = 0.0, no_return_m: float = 5.0) -> bool:
     """Whether the scan saw two clusters apart: a ray that passes between them, or a single
