@@ -266,6 +266,32 @@ def test_stonesoup_round_trip():
         assert_allclose(b.cov, a.cov, atol=1e-12)
 
 
+def test_the_trackers_prediction_is_stone_soups_to_the_last_bit():
+    """``Tracker._predict`` writes the constant-velocity blocks out instead of calling the
+    Stone Soup predictor (speed); it must return what that predictor returns, exactly:
+    the same type, mean, covariance and time, forwards and backwards in time (the model's
+    noise grows with |dt|) and with a non-default acceleration noise."""
+    from stonesoup.types.state import GaussianState
+
+    from nodlidar.tracking.tracker import _Track, stone_soup_time
+
+    rng = np.random.default_rng(11)
+    for accel in (0.05, 0.7):
+        trk = Tracker(TrackerConfig(accel_sigma_m_s2=accel))
+        predictor = trk._filters()[0]
+        for dt in (0.0, 0.013, 0.1, 1.37, -0.04, 2.5):
+            A = rng.normal(size=(4, 4))
+            tr = _Track(1)
+            tr.state = GaussianState(rng.normal(size=(4, 1)), A @ A.T,
+                                     timestamp=stone_soup_time(3.2))
+            ours = trk._predict(tr, 3.2 + dt)
+            theirs = predictor.predict(tr.state, timestamp=stone_soup_time(3.2 + dt))
+            assert type(ours) is type(theirs) and ours.timestamp == theirs.timestamp
+            np.testing.assert_array_equal(np.asarray(ours.state_vector),
+                                          np.asarray(theirs.state_vector))
+            np.testing.assert_array_equal(np.asarray(ours.covar), np.asarray(theirs.covar))
+
+
 # -- study helpers -----------------------------------------------------------------------------
 def test_count_traces_and_convergence_index():
     steps = np.arange(100, 112)
