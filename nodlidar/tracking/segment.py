@@ -35,7 +35,7 @@ from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap, carve_samples
 
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch",
            "OnlineSegmenter", "window_cut", "grazing_secant", "seen_apart",
-           "seen_through"]
+           "seen_through", "behind_or_through"]
 
 
 @dataclass(frozen=True)
