@@ -190,3 +190,30 @@ def test_side_by_side_on_the_diagonal_keeps_both_tracks(seed):
     assert on["left"]["tracks"] != on["right"]["tracks"]
     off = run(False)  # the failure, without: a second track for the right person
     assert off["right"]["id_switches"] == 1 and len(off["right"]["tracks"]) == 2, off["right"]
+
+
+def test_a_moving_track_that_turned_unseen_is_reacquired_only_when_asked():
+    """Opt-in ``reacquire_moving``: a track moving +y at 0.4 m/s for 10 scans, unseen for
+    12, is seen again 0.25 m *behind* where it was last seen (it turned in the gap): 1.1 m
+    from its constant-velocity prediction, beyond every gate, within its speed x 1.3 s
+    + ``gate_m`` of where it was. By default: a new track; with the option: the same
+    track, its motion restarted."""
+    seen = [_Arcs(k, [(3.0, -1.0 + 0.04 * k)]) for k in range(10)]
+    gap = [_Arcs(k) for k in range(10, 22)]
+    back = _Arcs(22, [(3.0, -0.89)])
+    trk = _run(seen + gap + [back])
+    assert sorted(trk.tracks) == [1, 2]
+    trk = Tracker(TrackerConfig(reacquire_moving=True))
+    for s in seen + gap[:-1]:
+        trk.update(s)
+    assert trk.tracks[1].motion is not None
+    trk.update(gap[-1])
+    trk.update(back)
+    assert sorted(trk.tracks) == [1] and trk.tracks[1].scans[-1] == 22
+    assert trk.tracks[1].start == 10  # the motion starts afresh at the new sighting
+    # too far for its own speed: 0.4 m/s x 1.3 s + 0.6 m = 1.12 m; 1.5 m is someone else
+    trk = Tracker(TrackerConfig(reacquire_moving=True))
+    for s in seen + gap:
+        trk.update(s)
+    trk.update(_Arcs(22, [(3.0, -0.36 - 1.5)]))
+    assert sorted(trk.tracks) == [1, 2]
