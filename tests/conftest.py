@@ -192,6 +192,10 @@ SLOW_FIXTURES: dict[str, tuple[str, ...]] = {
     "test_report.py": ("report_dir",),
     "test_tracking_recording.py": ("recording",),
     "test_tracking_study.py": ("renyi_study",),
+    # whole simulated scenes through the live tracker (0.7-2 s a test)
+    "test_tracking_apart.py": ("scene_runs",),
+    "test_tracking_gaps.py": ("scene_runs",),
+    "test_tracking_occluded.py": ("scene_runs",),
 }
 
 #: Files every test of which is slow by construction (a module-level ``cad`` mark, and no
@@ -216,6 +220,48 @@ def pytest_ignore_collect(collection_path, config):
     if collection_path.name in SLOW_FILES and _deselects_slow(config):
         return True
     return None
+
+
+class SceneRuns:
+    """The live tracker on a scene of ``design/scenes`` with the paper's design (solved
+    once): ``runs(name, scans, seed, mirrors, **tracker_config)`` returns
+    :func:`nodlidar.tracking.evaluate.evaluate`'s per-mover rows by mover name."""
+
+    def __init__(self):
+        from nodlidar.paper import PAPER_DESIGN
+        from nodlidar.solver import solve
+        from nodlidar.spec import load_design
+
+        self.design = solve(load_design(PAPER_DESIGN))
+
+    def __call__(self, name: str, scans: int, seed: int, mirrors: bool, **tracker) -> dict:
+        from nodlidar.sim.scene import load_scene
+        from nodlidar.tracking.evaluate import evaluate, run_online
+        from nodlidar.tracking.tracker import TrackerConfig
+
+        scene = load_scene(Path(__file__).resolve().parents[1] / "design" / "scenes" / name)
+        res = run_online(self.design, scene, scans, mirrors_deployed=mirrors, seed=seed,
+                         tracker=TrackerConfig(**tracker))
+        return {m["mover"]: m for m in evaluate(res)["movers"]}
+
+    @staticmethod
+    def assert_kept(movers: dict) -> None:
+        """Each mover kept one track of its own (no switch, purity >= 0.99), converged,
+        with the final velocity within the issue's tolerances (0.03 m/s, 5 deg)."""
+        from nodlidar.tracking.evaluate import HEADING_TOL_DEG, V_TOL_M_S
+
+        for m in movers.values():
+            assert m["id_switches"] == 0 and len(m["tracks"]) == 1 and m["purity"] >= 0.99, m
+            assert m["conv"] is not None, m
+            assert abs(m["final_err_v_m_s"]) <= V_TOL_M_S, m
+            assert abs(m["final_err_heading_deg"]) <= HEADING_TOL_DEG, m
+        tracks = [m["tracks"][0] for m in movers.values()]
+        assert len(set(tracks)) == len(tracks), movers
+
+
+@pytest.fixture(scope="session")
+def scene_runs() -> SceneRuns:
+    return SceneRuns()
 
 
 @pytest.fixture(autouse=True)

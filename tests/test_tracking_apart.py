@@ -236,31 +236,16 @@ def test_the_rays_through_where_an_object_was_end_just_behind_it():
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-def test_a_person_walking_straight_away_keeps_one_track(seed):
+def test_a_person_walking_straight_away_keeps_one_track(seed, scene_runs):
     """``design/scenes/track-walking-away.toml``, lifted: one person walking straight away
     at 0.5 m/s. "Free, then occupied" sees it only where the nod comes back to a height;
     in between its clusters are not dynamic, but the rays through where its back was end
     on it (``TrackerConfig.follow_seen_through_m``). Measured, 70 scans, seeds 0-3, without
     / with: followed in 7-8 / 13-21 scans, 2 tracks (1 switch), never converged / one
     track, converged at scan 3-6, final speed within 0.001 m/s and heading 0.13 deg."""
-    from nodlidar.paper import PAPER_DESIGN
-    from nodlidar.sim.scene import load_scene
-    from nodlidar.solver import solve
-    from nodlidar.spec import load_design
-    from nodlidar.tracking.evaluate import HEADING_TOL_DEG, V_TOL_M_S, evaluate, run_online
-    from nodlidar.tracking.tracker import TrackerConfig
-
-    design = solve(load_design(PAPER_DESIGN))
-    sc = load_scene(SCENES / "track-walking-away.toml")
-
-    def run(reach_m: float):
-        res = run_online(design, sc, 70, mirrors_deployed=False, seed=seed,
-                         tracker=TrackerConfig(follow_seen_through_m=reach_m))
-        return evaluate(res)["movers"][0]
-
-    m = run(1.5)
-    assert m["id_switches"] == 0 and len(m["tracks"]) == 1 and m["purity"] >= 0.99, m
-    assert m["conv"] is not None, m
-    assert abs(m["final_err_v_m_s"]) <= V_TOL_M_S and abs(m["final_err_heading_deg"]) <= HEADING_TOL_DEG
-    off = run(0.0)  # the failure, without: lost, then a second track
+    on = scene_runs("track-walking-away.toml", 70, seed, False, follow_seen_through_m=1.5)
+    scene_runs.assert_kept(on)
+    # the failure, without: lost, then a second track
+    off = scene_runs("track-walking-away.toml", 70, seed, False,
+                     follow_seen_through_m=0.0)["walker"]
     assert off["conv"] is None and off["id_switches"] >= 1, off

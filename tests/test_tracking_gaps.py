@@ -4,19 +4,15 @@ does not win a sure track's cluster (``TrackerConfig.assign_likelihood``)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from nodlidar.tracking.scans import ScanPoints
 from nodlidar.tracking.tracker import Tracker, TrackerConfig
 
-SCENES = Path(__file__).resolve().parents[1] / "design" / "scenes"
-
 
 @pytest.mark.parametrize("seed", [1, 2])
-def test_a_person_seen_once_before_the_blind_part_keeps_the_track(seed):
+def test_a_person_seen_once_before_the_blind_part_keeps_the_track(seed, scene_runs):
     """``design/scenes/track-side-by-side-fast.toml``, mirrors: the left person is seen
     (dynamic) in scan 5, then the nod's lower part sees only the floor before them until
     scan 25, by when they are 1.2 m on, beyond the gate of a track without a velocity.
@@ -24,29 +20,10 @@ def test_a_person_seen_once_before_the_blind_part_keeps_the_track(seed):
     switch) in 6 of 8 seeds (1, 2, 4, 5, 6, 7) / one track in all 8 (in seed 2 both
     people are new in scan 25, 1.20 and 1.30 m from where the left one was seen: the
     nearer is it); the right person one track either way."""
-    from nodlidar.paper import PAPER_DESIGN
-    from nodlidar.sim.scene import load_scene
-    from nodlidar.solver import solve
-    from nodlidar.spec import load_design
-    from nodlidar.tracking.evaluate import HEADING_TOL_DEG, V_TOL_M_S, evaluate, run_online
-    from nodlidar.tracking.tracker import TrackerConfig
-
-    design = solve(load_design(PAPER_DESIGN))
-    sc = load_scene(SCENES / "track-side-by-side-fast.toml")
-
-    def run(speed: float):
-        res = run_online(design, sc, 45, mirrors_deployed=True, seed=seed,
-                         tracker=TrackerConfig(reacquire_births_m_s=speed))
-        return {m["mover"]: m for m in evaluate(res)["movers"]}
-
-    on = run(1.5)
-    for m in on.values():
-        assert m["id_switches"] == 0 and len(m["tracks"]) == 1 and m["purity"] >= 0.99, m
-        assert m["conv"] is not None, m
-        assert abs(m["final_err_v_m_s"]) <= V_TOL_M_S
-        assert abs(m["final_err_heading_deg"]) <= HEADING_TOL_DEG
-    assert on["left"]["tracks"] != on["right"]["tracks"]
-    off = run(0.0)  # the failure, without: a second track for the left person
+    on = scene_runs("track-side-by-side-fast.toml", 45, seed, True, reacquire_births_m_s=1.5)
+    scene_runs.assert_kept(on)
+    # the failure, without: a second track for the left person
+    off = scene_runs("track-side-by-side-fast.toml", 45, seed, True, reacquire_births_m_s=0.0)
     assert off["left"]["id_switches"] == 1 and len(off["left"]["tracks"]) == 2, off["left"]
 
 
@@ -159,7 +136,7 @@ def test_a_vague_prediction_does_not_win_a_sure_tracks_cluster():
 
 
 @pytest.mark.parametrize("seed", [2, 4])
-def test_side_by_side_on_the_diagonal_keeps_both_tracks(seed):
+def test_side_by_side_on_the_diagonal_keeps_both_tracks(seed, scene_runs):
     """``design/scenes/track-side-by-side-diagonal.toml``, mirrors: the right person is seen
     in scans 12 and 13, then the nod's lower part sees the floor before them for ten scans;
     their track's two-scan velocity is 0.6 m/s at ~85 deg (truth 0.4 at 45), so 1.1 s on
@@ -167,29 +144,12 @@ def test_side_by_side_on_the_diagonal_keeps_both_tracks(seed):
     by likelihood: that track won the left person's cluster, was coalesced into the left
     track, and the right person got a second track in seeds 2 and 4 / one track each in
     all 8."""
-    from nodlidar.paper import PAPER_DESIGN
-    from nodlidar.sim.scene import load_scene
-    from nodlidar.solver import solve
-    from nodlidar.spec import load_design
-    from nodlidar.tracking.evaluate import HEADING_TOL_DEG, V_TOL_M_S, evaluate, run_online
-
-    design = solve(load_design(PAPER_DESIGN))
-    sc = load_scene(SCENES / "track-side-by-side-diagonal.toml")
-
-    def run(likelihood: bool):
-        res = run_online(design, sc, 45, mirrors_deployed=True, seed=seed,
-                         tracker=TrackerConfig(assign_likelihood=likelihood))
-        return {m["mover"]: m for m in evaluate(res)["movers"]}
-
-    on = run(True)
-    for m in on.values():
-        assert m["id_switches"] == 0 and len(m["tracks"]) == 1 and m["purity"] >= 0.99, m
-        assert m["conv"] is not None, m
-        assert abs(m["final_err_v_m_s"]) <= V_TOL_M_S
-        assert abs(m["final_err_heading_deg"]) <= HEADING_TOL_DEG
-    assert on["left"]["tracks"] != on["right"]["tracks"]
-    off = run(False)  # the failure, without: a second track for the right person
+    on = scene_runs("track-side-by-side-diagonal.toml", 45, seed, True, assign_likelihood=True)
+    scene_runs.assert_kept(on)
+    # the failure, without: a second track for the right person
+    off = scene_runs("track-side-by-side-diagonal.toml", 45, seed, True, assign_likelihood=False)
     assert off["right"]["id_switches"] == 1 and len(off["right"]["tracks"]) == 2, off["right"]
+
 
 
 def test_a_moving_track_that_turned_unseen_is_reacquired_only_when_asked():

@@ -3,16 +3,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from nodlidar.tracking.scans import ScanPoints
 from nodlidar.tracking.segment import behind_or_through
 from nodlidar.tracking.tracker import Tracker, TrackerConfig
-
-SCENES = Path(__file__).resolve().parents[1] / "design" / "scenes"
 
 
 def _fan(ranges, z_dir=0.0, start=(0.0, 0.0, 0.5)):
@@ -113,31 +109,13 @@ def test_a_track_hidden_behind_another_tracks_object_lives_on():
 
 
 @pytest.mark.parametrize("seed", [0, 4])
-def test_side_by_side_along_the_line_of_sight_keeps_both_tracks(seed):
+def test_side_by_side_along_the_line_of_sight_keeps_both_tracks(seed, scene_runs):
     """``design/scenes/track-side-by-side-tangential.toml``, mirrors: the farther person
     is seen in scans 1-6, then hidden behind the nearer one (or not seen at all: the nod's
     blind part) until scan 41, 35 scans. Measured, 90 scans, seeds 0-7, without / with: a
     second track for the farther person in all 8 / one track each in all 8, converged."""
-    from nodlidar.paper import PAPER_DESIGN
-    from nodlidar.sim.scene import load_scene
-    from nodlidar.solver import solve
-    from nodlidar.spec import load_design
-    from nodlidar.tracking.evaluate import HEADING_TOL_DEG, V_TOL_M_S, evaluate, run_online
-
-    design = solve(load_design(PAPER_DESIGN))
-    sc = load_scene(SCENES / "track-side-by-side-tangential.toml")
-
-    def run(scans: int):
-        res = run_online(design, sc, 90, mirrors_deployed=True, seed=seed,
-                         tracker=TrackerConfig(occluded_scans=scans))
-        return {m["mover"]: m for m in evaluate(res)["movers"]}
-
-    on = run(25)
-    for m in on.values():
-        assert m["id_switches"] == 0 and len(m["tracks"]) == 1 and m["purity"] >= 0.99, m
-        assert m["conv"] is not None, m
-        assert abs(m["final_err_v_m_s"]) <= V_TOL_M_S
-        assert abs(m["final_err_heading_deg"]) <= HEADING_TOL_DEG
-    assert on["left"]["tracks"] != on["right"]["tracks"]
-    off = run(0)  # the failure, without: a second track for the farther person
+    on = scene_runs("track-side-by-side-tangential.toml", 90, seed, True, occluded_scans=25)
+    scene_runs.assert_kept(on)
+    # the failure, without: a second track for the farther person
+    off = scene_runs("track-side-by-side-tangential.toml", 90, seed, True, occluded_scans=0)
     assert off["right"]["id_switches"] == 1 and len(off["right"]["tracks"]) == 2, off["right"]
