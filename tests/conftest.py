@@ -224,7 +224,7 @@ def pytest_ignore_collect(collection_path, config):
 
 class SceneRuns:
     """The live tracker on a scene of ``design/scenes`` with the paper's design (solved
-    once): ``runs(name, scans, seed, mirrors, **tracker_config)`` returns
+    once): ``scene_runs(name, scans, seed, mirrors, **tracker_config)`` returns
     :func:`nodlidar.tracking.evaluate.evaluate`'s per-mover rows by mover name."""
 
     def __init__(self):
