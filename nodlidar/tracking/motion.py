@@ -288,18 +288,32 @@ class RenyiCost:
         A weight per point: the sum is ``sum_i w_i^2 + sum_{i != j} w_i w_j k_ij`` over
         ``(sum_i w_i)^2`` (None: all ones, the plain cost). Used to give every part of a
         surface the same mass (:func:`incidence_weights`).
+    edges : (n, 2, 5) float, optional
+        Per point, the lines where its scan's view of the object was cut (further
+        columns are ignored)
+        (:func:`~nodlidar.tracking.segment.cut_edges`; NaN: none). A pair of points of
+        two scans then enters the sum only if each point, moved by ``center_velocity`` to
+        the other's time, lies on the seen side of the other's lines (1 mm tolerance): a
+        part of the object that one of the two scans could not see has no partner there,
+        and the pairs it does have pull the motion towards the cut, a line fixed in the
+        sensor. The pairs kept are chosen once, at ``center_velocity`` (the cost stays
+        smooth); the tracker's next refinement starts from this one's minimum.
     """
 
     def __init__(self, points: ArrayLike, t_s: ArrayLike, t_ref_s: float, sigma_m: float,
                  center_velocity: np.ndarray | Sequence[float],
                  max_dv_m_s: float = 0.1, cutoff_sigmas: float = 5.0, plane: bool = True,
                  max_points: int = 800, subsample: str = "points",
-                 labels: ArrayLike | None = None, weights: ArrayLike | None = None) -> None:
+                 labels: ArrayLike | None = None, weights: ArrayLike | None = None,
+                 edges: ArrayLike | None = None) -> None:
         require(subsample in ("points", "pairs"), "subsample", subsample, "points or pairs")
         p = np.asarray(points, float)
         t = np.asarray(t_s, float)
         lab = None if labels is None else np.asarray(labels)
         wt = None if weights is None else np.asarray(weights, float)
+        ed = None if edges is None else np.asarray(edges, float)
+        if ed is not None and not np.isfinite(ed[:, :, 0]).any():
+            ed = None  # no cut: every pair
         if lab is not None and (len(lab) == 0 or np.all(lab == lab[0])):
             lab = None  # one view: every pair is within it
         sample_pairs = subsample == "pairs" and len(p) > max_points
@@ -309,6 +323,8 @@ class RenyiCost:
             p, t = p[sel], t[sel]
             lab = None if lab is None else lab[sel]
             wt = None if wt is None else wt[sel]
+            ed = None if ed is None else ed[sel]
+        p_xy = p[:, :2]
         if plane:
             p = np.column_stack([p[:, :2], np.zeros(len(p))])
         self.n = len(p)
@@ -353,6 +369,11 @@ class RenyiCost:
         # point weights: the self terms sum w_i^2, each pair w_i w_j, normalised by (sum w)^2
         # (all ones: the plain sum, n self terms over n^2)
         self.pw = None if wt is None else (wt[i] * wt[j]).astype(np.float32)
+        if ed is not None and len(i):
+            c = np.asarray(center_velocity, float)
+            dt = (t[j] - t[i])[:, None]
+            seen = _on_seen_side(p_xy[i] + c * dt, ed[j]) & _on_seen_side(p_xy[j] - c * dt, ed[i])
+            self.pw = seen.astype(np.float32) if self.pw is None else self.pw * seen
         self.s0 = float(self.n) if wt is None else float(np.sum(wt ** 2))
         self.norm = float(self.n) ** 2 if wt is None else float(np.sum(wt)) ** 2
         self.c = np.asarray(center_velocity, float)
@@ -379,6 +400,18 @@ class RenyiCost:
             e *= self.pw
         s = self.s0 + 2.0 * self.w * float(np.sum(e, dtype=np.float64))
         return float(-np.log(s / self.norm))
+
+
+def _on_seen_side(q: np.ndarray, edges: np.ndarray, tol_m: float = 1e-3) -> np.ndarray:
+    """(m,) bool: each top-view point ``q`` (m, 2) lies on the seen side of its row's cut
+    lines ``edges`` (m, 2, 5) (:func:`~nodlidar.tracking.segment.cut_edges`; NaN: no line),
+    within ``tol_m``."""
+    ok = np.ones(len(q), bool)
+    for k in range(edges.shape[1]):
+        e = edges[:, k]
+        cross = e[:, 2] * (q[:, 1] - e[:, 1]) - e[:, 3] * (q[:, 0] - e[:, 0])
+        ok &= ~(e[:, 4] * cross < -tol_m)  # NaN (no line): compares False, kept
+    return ok
 
 
 def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.ndarray, np.ndarray]:
@@ -539,7 +572,8 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
                   renyi_method: str = "nelder-mead",
                   renyi_subsample: str = "points",
                   labels: ArrayLike | None = None,
-                  weights: ArrayLike | None = None) -> MotionEstimate:
+                  weights: ArrayLike | None = None,
+                  edges: ArrayLike | None = None) -> MotionEstimate:
     """Eq. 13: the motion whose compensated accumulation has the least entropy.
 
     Parameters
@@ -589,6 +623,9 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         unobserved.
     weights : (n,) float, optional
         Rényi: a weight per point (:class:`RenyiCost`); None: all ones.
+    edges : (n, 2, >=5) float, optional
+        Rényi: per point, the lines where its scan's view was cut; pairs are kept only
+        where both scans could see both points (:class:`RenyiCost`); None: every pair.
 
     Returns
     -------
@@ -614,7 +651,7 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
     if entropy == "renyi":
         cost = RenyiCost(p, t, t_ref, sigma_m, w0, max_dv_m_s=search_m_s, plane=plane,
                          max_points=max_points, subsample=renyi_subsample, labels=labels,
-                         weights=weights)
+                         weights=weights, edges=edges)
         nt = _newton(cost, w0, search_m_s / 4) if renyi_method == "newton" else None
         if nt is not None and np.linalg.norm(nt[0] - w0) <= search_m_s:
             w, fval, H = nt
@@ -630,7 +667,7 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         if np.linalg.norm(w - w0) > search_m_s:  # left the region whose pairs were gathered
             cost = RenyiCost(p, t, t_ref, sigma_m, w, max_dv_m_s=search_m_s, plane=plane,
                              max_points=max_points, subsample=renyi_subsample, labels=labels,
-                             weights=weights)
+                             weights=weights, edges=edges)
             res = minimize(cost, w, method="Nelder-Mead", options={"xatol": 5e-4, "fatol": 1e-6})
             w = res.x
         H = _hessian(cost, w, np.array([2e-3, 2e-3]))

@@ -34,7 +34,7 @@ from .scans import ScanPoints
 from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap, carve_samples
 
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch",
-           "OnlineSegmenter", "window_cut", "grazing_secant", "seen_apart",
+           "OnlineSegmenter", "window_cut", "cut_edges", "grazing_secant", "seen_apart",
            "seen_through", "behind_or_through"]
 
 
@@ -297,8 +297,53 @@ def window_cut(scan: ScanPoints, idx: np.ndarray, reach_m: float = 0.0,
     """
     idx = np.asarray(idx, np.int64)
     cut = np.zeros(len(idx), bool)
+    win = scan.mirror[idx]
+    for m in _slice_cut_ends(scan, idx, reach_m, occluders, max_walk):
+        cut |= win == m
+    return cut
+
+
+def cut_edges(scan: ScanPoints, idx: np.ndarray, reach_m: float = 0.0,
+              occluders: bool = False, max_walk: int = 64) -> np.ndarray:
+    """The lines in the top view where a cluster's slices are cut (:func:`window_cut`):
+    the ray of the last beam of the slice's surface at each cut end, and the side of it
+    the slice lies on. Beyond that line the scan could not see the object, whatever its
+    shape: an entropy comparing two scans should only compare what both could see
+    (:class:`~nodlidar.tracking.motion.RenyiCost`, ``edges``).
+
+    Parameters are those of :func:`window_cut`.
+
+    Returns
+    -------
+    (k, 2, 6) float: per point, up to two lines of its slice ``(a_x, a_y, d_x, d_y,
+    side, occluder)``: a point ``a`` on the ray [m], its unit direction ``d`` in the top
+    view, ``side`` = +1 / -1 where the slice lies to the left / right of ``d`` (``d x (p -
+    a)`` has that sign), and ``occluder`` 1 where a nearer return cut it, 0 where a
+    window's or the view's edge did. NaN rows: no such cut. A point is in a cut slice
+    exactly where :func:`window_cut` says so (``isfinite(out[:, 0, 0])``).
+    """
+    idx = np.asarray(idx, np.int64)
+    out = np.full((len(idx), 2, 6), np.nan)
+    win = scan.mirror[idx]
+    for m, ends in _slice_cut_ends(scan, idx, reach_m, occluders, max_walk).items():
+        sel = win == m
+        c = scan.points[idx[sel], :2].mean(axis=0)
+        for k, (e, occ) in enumerate(ends[:2]):
+            a = scan.ray_start[e, :2]
+            d = scan.ray_dir[e, :2] / np.hypot(*scan.ray_dir[e, :2])
+            side = np.sign(d[0] * (c[1] - a[1]) - d[1] * (c[0] - a[0])) or 1.0
+            out[sel, k] = (a[0], a[1], d[0], d[1], side, occ)
+    return out
+
+
+def _slice_cut_ends(scan: ScanPoints, idx: np.ndarray, reach_m: float, occluders: bool,
+                    max_walk: int) -> dict[int, list[tuple[int, int]]]:
+    """Per mirror window whose slice of the cluster ``idx`` is cut (:func:`window_cut`),
+    per cut end the beam index (into ``scan``) of the slice's surface's last beam, and 1
+    where an occluder cut it (0: a window's or the view's edge)."""
+    ends: dict[int, list[tuple[int, int]]] = {}
     if not len(idx):
-        return cut
+        return ends
     steps, mirror = scan.steps, scan.mirror
     # beam index by step (-1: no such beam), one slot of margin either side
     base = int(steps.min()) - 1
@@ -309,19 +354,22 @@ def window_cut(scan: ScanPoints, idx: np.ndarray, reach_m: float = 0.0,
     for off in (-1, 1):
         nb = lut[steps[idx] + off - base]
         ends_cut |= (nb < 0) | (mirror[nb] != win)
-    cut_win = set(np.unique(win[ends_cut]).tolist())
+    for m in np.unique(win[ends_cut]).tolist():
+        at = idx[(win == m) & ends_cut]
+        st = steps[at]
+        ends[int(m)] = [(e, 0) for e in sorted({int(at[np.argmin(st)]), int(at[np.argmax(st)])})]
     if reach_m > 0 or occluders:
         valid = scan.valid
         xy = scan.points[:, :2]
         for m in np.unique(win):
-            if m in cut_win:
+            if int(m) in ends:
                 continue
             st = steps[idx[win == m]]
             for cur, off in ((int(lut[st.min() - base]), -1), (int(lut[st.max() - base]), 1)):
                 for _ in range(max_walk):
                     nxt = int(lut[int(steps[cur]) + off - base])
                     if nxt < 0 or mirror[nxt] != m:
-                        cut_win.add(int(m))  # the window's (or the view's) edge
+                        ends.setdefault(int(m), []).append((cur, 0))  # the window's (or view's) edge
                         break
                     if not valid[nxt]:
                         break  # no return: the silhouette
@@ -330,13 +378,9 @@ def window_cut(scan: ScanPoints, idx: np.ndarray, reach_m: float = 0.0,
                         cur = nxt  # the same surface outside the cluster: go on
                         continue
                     if occluders and scan.range_m[nxt] < scan.range_m[cur] - reach_m:
-                        cut_win.add(int(m))  # an occluder's edge
+                        ends.setdefault(int(m), []).append((cur, 1))  # an occluder's edge
                     break
-                if m in cut_win:
-                    break
-    for m in cut_win:
-        cut |= win == m
-    return cut
+    return ends
 
 
 def seen_through(scan: ScanPoints, idx: np.ndarray, keys: np.ndarray, grid: VoxelGrid,
