@@ -370,9 +370,7 @@ class RenyiCost:
         # (all ones: the plain sum, n self terms over n^2)
         self.pw = None if wt is None else (wt[i] * wt[j]).astype(np.float32)
         if ed is not None and len(i):
-            c = np.asarray(center_velocity, float)
-            dt = (t[j] - t[i])[:, None]
-            seen = _on_seen_side(p_xy[i] + c * dt, ed[j]) & _on_seen_side(p_xy[j] - c * dt, ed[i])
+            seen = _seen_by_both(p_xy, t, ed, i, j, np.asarray(center_velocity, float))
             self.pw = seen.astype(np.float32) if self.pw is None else self.pw * seen
         self.s0 = float(self.n) if wt is None else float(np.sum(wt ** 2))
         self.norm = float(self.n) ** 2 if wt is None else float(np.sum(wt)) ** 2
@@ -402,16 +400,31 @@ class RenyiCost:
         return float(-np.log(s / self.norm))
 
 
-def _on_seen_side(q: np.ndarray, edges: np.ndarray, tol_m: float = 1e-3) -> np.ndarray:
-    """(m,) bool: each top-view point ``q`` (m, 2) lies on the seen side of its row's cut
-    lines ``edges`` (m, 2, 5) (:func:`~nodlidar.tracking.segment.cut_edges`; NaN: no line),
-    within ``tol_m``."""
-    ok = np.ones(len(q), bool)
+def _seen_by_both(p_xy: np.ndarray, t: np.ndarray, edges: np.ndarray, i: np.ndarray,
+                  j: np.ndarray, c: np.ndarray, tol_m: float = 1e-3) -> np.ndarray:
+    """(m,) bool: for each pair ``(i, j)``, point ``i`` moved at velocity ``c`` to ``t[j]``
+    lies on the seen side of ``j``'s cut lines, and ``j`` moved to ``t[i]`` of ``i``'s
+    (``edges`` (n, L, >=5), :func:`~nodlidar.tracking.segment.cut_edges`; NaN: no line),
+    within ``tol_m``. Only the pairs whose other point has a line are computed, from 1D
+    gathers (several times faster than gathering rows)."""
+    seen = np.ones(len(i), bool)
+    dt = t[j] - t[i]
+    px, py = np.ascontiguousarray(p_xy[:, 0]), np.ascontiguousarray(p_xy[:, 1])
     for k in range(edges.shape[1]):
-        e = edges[:, k]
-        cross = e[:, 2] * (q[:, 1] - e[:, 1]) - e[:, 3] * (q[:, 0] - e[:, 0])
-        ok &= ~(e[:, 4] * cross < -tol_m)  # NaN (no line): compares False, kept
-    return ok
+        has = np.isfinite(edges[:, k, 4])
+        if not has.any():
+            continue
+        ax, ay, ux, uy, side = (np.ascontiguousarray(edges[:, k, c]) for c in range(5))
+        for moved, other, sign in ((i, j, 1.0), (j, i, -1.0)):
+            sel = np.flatnonzero(has[other])
+            if not len(sel):
+                continue
+            pm, po, d = moved[sel], other[sel], sign * dt[sel]
+            qx = px[pm] + c[0] * d
+            qy = py[pm] + c[1] * d
+            cross = ux[po] * (qy - ay[po]) - uy[po] * (qx - ax[po])
+            seen[sel[side[po] * cross < -tol_m]] = False
+    return seen
 
 
 def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.ndarray, np.ndarray]:
