@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .._light import DEFAULT_SENSOR_HEIGHT_M  # defined without numpy: the CLI parser shows it
-from .scans import ScanPoints
+from .scans import ScanPoints, sensor_velocity
 
 if TYPE_CHECKING:
     from ..design import Design
@@ -113,7 +113,8 @@ def scans_from_capture(model: AssemblyModel, scans: Sequence[Any], joints: Mappi
                               points=pts[order], ray_start=start[order], ray_dir=direc[order],
                               ray_offset=off[order], calibration_id=cloud.calibration_id,
                               truth_id=None if tid is None else np.where(missing[order], -1,
-                                                                         tid[order])))
+                                                                         tid[order]),
+                              sensor_velocity_m_s=sensor_velocity(pose, t[order])))
     return out
 
 

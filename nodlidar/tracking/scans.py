@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ScanPoints"]
+__all__ = ["ScanPoints", "sensor_velocity"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,6 +44,10 @@ class ScanPoints:
         Ground truth object id (-1 none, 0 static, 1 + k mover k), when known.
     calibration_id : str
         The calibration the points were projected with (``"none"``: the design as is).
+    sensor_velocity_m_s : (3,) float or None
+        World velocity of the sensor base over the scan [m/s] (a robot's known motion:
+        :func:`sensor_velocity`); None: standing still, or not known. A beam fixed in the
+        sensor moves with it (the tracker's speed across a window's edge is relative to it).
     """
 
     scan: int
@@ -57,6 +61,7 @@ class ScanPoints:
     ray_offset: np.ndarray
     truth_id: np.ndarray | None = None
     calibration_id: str = "none"
+    sensor_velocity_m_s: np.ndarray | None = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -67,3 +72,16 @@ class ScanPoints:
     def t_mid_s(self) -> float:
         """Mean beam time of the scan [s]."""
         return float(np.mean(self.t_s))
+
+
+def sensor_velocity(pose, t_s: np.ndarray) -> np.ndarray | None:
+    """World velocity [m/s] (3,) of a sensor base ``pose`` (anything with ``to_world(p (n,
+    3), t (n,))``, e.g. :class:`nodlidar.sim.scene.SensorPose`) over the beam times
+    ``t_s`` [s]: the base origin's displacement from the first to the last time, divided by
+    the span. None without a pose or a span."""
+    t = np.asarray(t_s, float)
+    if pose is None or not len(t) or not np.ptp(t) > 0:
+        return None
+    t0, t1 = float(t.min()), float(t.max())
+    o = pose.to_world(np.zeros((2, 3)), np.array([t0, t1]))
+    return (o[1] - o[0]) / (t1 - t0)

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import require
-from .scans import ScanPoints  # re-exported: it was defined here
+from .scans import ScanPoints, sensor_velocity  # ScanPoints re-exported: it was defined here
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -71,7 +71,7 @@ def project_scan(beam_model: BeamModel, scan: int, steps: np.ndarray, range_m: n
                       mirror=beam_model.mirror_index(steps), range_m=r,
                       points=_world(pose, p, t_s), ray_start=_world(pose, start, t_s),
                       ray_dir=_world(pose, d, t_s, direction=True), ray_offset=off,
-                      truth_id=truth_id)
+                      truth_id=truth_id, sensor_velocity_m_s=sensor_velocity(pose, t_s))
 
 
 def simulate_scans(design: Design, n_scans: int, *, mirrors_deployed: bool = True,
