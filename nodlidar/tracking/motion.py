@@ -414,7 +414,7 @@ def _seen_by_both(p_xy: np.ndarray, t: np.ndarray, edges: np.ndarray, i: np.ndar
         has = np.isfinite(edges[:, k, 4])
         if not has.any():
             continue
-        ax, ay, ux, uy, side = (np.ascontiguousarray(edges[:, k, c]) for c in range(5))
+        ax, ay, ux, uy, side = (np.ascontiguousarray(edges[:, k, col]) for col in range(5))
         for moved, other, sign in ((i, j, 1.0), (j, i, -1.0)):
             sel = np.flatnonzero(has[other])
             if not len(sel):

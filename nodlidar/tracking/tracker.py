@@ -310,8 +310,9 @@ class TrackerConfig:
         pair. With mirrors deployed the view ends at +-40 deg, and an object entering it is
         seen up to that line for many scans. Measured, seeds 0-7, median convergence scan
         with mirrors (lifted unchanged): a person 0.8 m to the side walking away at
-        0.3 m/s 38 -> 26.5 (lifted 4: it starts outside the view), the same passing a
-        robot that drives at 0.3 m/s 35 -> 25, side by side on the diagonal (left) 26 ->
+        0.3 m/s 38 -> 26.5 (lifted 4: it starts outside the view), the same overtaking a
+        robot that drives at 0.3 m/s 35 -> 25 (16.5 with the speed across relative to the
+        robot, ``window_cut_speed_m_s``), side by side on the diagonal (left) 26 ->
         14.5 (lifted 10), near the sensor (left) 25 -> 13, a fast crossing (A) 12 -> 8
         (lifted 6). ``"all"`` lost slow movers half hidden by a neighbour (side by side at
         0.13 m/s, right: 3 of 8 seeds converged). docs/tracking.md "Comparing only what
