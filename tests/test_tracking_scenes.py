@@ -199,6 +199,18 @@ def test_window_map_answers_as_the_full_map_within_its_window():
     assert short.n_keys == sum(len(k) for k in win._keys[-3:])
 
 
+def test_unique_keys_is_np_unique():
+    # the sort-based unique the carving and the tracker use, against numpy's own: a scan's
+    # carving (few distinct keys among many), negative keys, and the empty and one-key ends
+    from nodlidar.tracking.voxels import unique_keys
+
+    rng = np.random.default_rng(5)
+    for keys in (rng.integers(-3000, 3000, 40_000), rng.integers(0, 1 << 62, 500),
+                 np.array([7]), np.zeros(0, np.int64), np.full(9, -2)):
+        u = unique_keys(keys)
+        assert u.dtype == keys.dtype and np.array_equal(u, np.unique(keys))
+
+
 @pytest.mark.parametrize("bins_per_point", [0.0, 8.0, 1e9])
 def test_batched_voxel_grid_equals_one_evaluation_per_velocity(bins_per_point):
     # the batched pass (one sort of an (m, n) key array) against eq. 12 evaluated velocity by

@@ -180,8 +180,19 @@ def _voxel_entropy_grid(p_xy: np.ndarray, t: np.ndarray, W: np.ndarray, t_ref: f
     most ``bins_per_point`` bins per (velocity, point) entry (a compact cloud: no sort),
     else by sorting each row."""
     dt = (t_ref - t)[None, :]
-    ix = np.floor((p_xy[None, :, 0] + W[:, :1] * dt + shift_m) / voxel_m).astype(np.int64)
-    iy = np.floor((p_xy[None, :, 1] + W[:, 1:] * dt + shift_m) / voxel_m).astype(np.int64)
+
+    def pixel(axis: int) -> np.ndarray:
+        # floor((p + w dt + shift) / voxel), the same float operations in place (one
+        # (m, n) temporary instead of four; a + b is b + a exactly, and + 0.0 changes
+        # nothing)
+        a = W[:, axis:axis + 1] * dt
+        a += p_xy[None, :, axis]
+        if shift_m:
+            a += shift_m
+        a /= voxel_m
+        return np.floor(a, out=a).astype(np.int64)
+
+    ix, iy = pixel(0), pixel(1)
     ix -= ix.min()
     iy -= iy.min()
     ny = int(iy.max()) + 1
@@ -334,6 +345,20 @@ class RenyiCost:
         # coordinates as 1D arrays: gathering pairs from them is several times faster than
         # gathering rows of q (same values)
         qx, qy, qz = (np.ascontiguousarray(q[:, k]) for k in range(3))
+
+        def diffs(i, j):
+            """q_i - q_j per axis; z only off the plane (in it z is 0 and adds nothing)."""
+            return qx[i] - qx[j], qy[i] - qy[j], (None if plane else qz[i] - qz[j])
+
+        def within(i, j, dx, dy, dz):
+            """The pairs within the cutoff ``r`` (as query_pairs), kept by index: a random
+            mask of ~70 % True indexes ~4x slower than one flatnonzero and gathers."""
+            d2 = dx * dx + dy * dy
+            if dz is not None:
+                d2 += dz * dz
+            k = np.flatnonzero(d2 <= r * r)
+            return i[k], j[k], dx[k], dy[k], (None if dz is None else dz[k])
+
         #: weight of one pair in the sum (1: every pair within the cutoff is in the list)
         self.w = 1.0
         if sample_pairs and lab is None:
@@ -343,34 +368,31 @@ class RenyiCost:
             i = rng.integers(0, n, m)
             j = rng.integers(0, n - 1, m)
             j += j >= i  # uniform over the ordered pairs i != j: each stands for one pair
-            dx, dy, dz = qx[i] - qx[j], qy[i] - qy[j], qz[i] - qz[j]
-            near = dx * dx + dy * dy + dz * dz <= r * r  # the cutoff, as query_pairs
-            i, j, dx, dy, dz = i[near], j[near], dx[near], dy[near], dz[near]
+            i, j, dx, dy, dz = within(i, j, *diffs(i, j))
             self.w = n * (n - 1) / (2.0 * m)
         elif sample_pairs and lab is not None:
             i, j, self.w = _draw_label_pairs(lab, max_points * (max_points - 1) // 2,
                                              np.random.default_rng(self.n))
-            dx, dy, dz = qx[i] - qx[j], qy[i] - qy[j], qz[i] - qz[j]
-            near = dx * dx + dy * dy + dz * dz <= r * r
-            i, j, dx, dy, dz = i[near], j[near], dx[near], dy[near], dz[near]
+            i, j, dx, dy, dz = within(i, j, *diffs(i, j))
         else:
             pairs = cKDTree(q).query_pairs(r, output_type="ndarray")
             if lab is not None:
                 pairs = pairs[lab[pairs[:, 0]] == lab[pairs[:, 1]]]
             i, j = pairs[:, 0], pairs[:, 1]
-            dx, dy, dz = qx[i] - qx[j], qy[i] - qy[j], qz[i] - qz[j]
+            dx, dy, dz = diffs(i, j)
         # q_i - q_j at velocity c + dw is (q_i - q_j)|_c + dw (t_j - t_i): stored once, in
         # float32 (the sum is over exp terms in [0, 1]; float32 halves the memory traffic)
         self.dx, self.dy = dx.astype(np.float32), dy.astype(np.float32)
-        dz32 = dz.astype(np.float32)
-        self.dz2 = (dz32 ** 2).astype(np.float32)
-        self.dt = (t[j] - t[i]).astype(np.float32)
+        self.dz2 = (np.zeros(len(i), np.float32) if dz is None
+                    else (dz.astype(np.float32) ** 2).astype(np.float32))
+        dt = t[j] - t[i]
+        self.dt = dt.astype(np.float32)
         self.n_pairs = len(i)
         # point weights: the self terms sum w_i^2, each pair w_i w_j, normalised by (sum w)^2
         # (all ones: the plain sum, n self terms over n^2)
         self.pw = None if wt is None else (wt[i] * wt[j]).astype(np.float32)
         if ed is not None and len(i):
-            seen = _seen_by_both(p_xy, t, ed, i, j, np.asarray(center_velocity, float))
+            seen = _seen_by_both(p_xy, dt, ed, i, j, np.asarray(center_velocity, float))
             self.pw = seen.astype(np.float32) if self.pw is None else self.pw * seen
         self.s0 = float(self.n) if wt is None else float(np.sum(wt ** 2))
         self.norm = float(self.n) ** 2 if wt is None else float(np.sum(wt)) ** 2
@@ -400,15 +422,15 @@ class RenyiCost:
         return float(-np.log(s / self.norm))
 
 
-def _seen_by_both(p_xy: np.ndarray, t: np.ndarray, edges: np.ndarray, i: np.ndarray,
+def _seen_by_both(p_xy: np.ndarray, dt: np.ndarray, edges: np.ndarray, i: np.ndarray,
                   j: np.ndarray, c: np.ndarray, tol_m: float = 1e-3) -> np.ndarray:
-    """(m,) bool: for each pair ``(i, j)``, point ``i`` moved at velocity ``c`` to ``t[j]``
-    lies on the seen side of ``j``'s cut lines, and ``j`` moved to ``t[i]`` of ``i``'s
-    (``edges`` (n, L, >=5), :func:`~nodlidar.tracking.segment.cut_edges`; NaN: no line),
-    within ``tol_m``. Only the pairs whose other point has a line are computed, from 1D
-    gathers (several times faster than gathering rows)."""
+    """(m,) bool: for each pair ``(i, j)`` with ``dt = t[j] - t[i]`` (m,) [s], point ``i``
+    moved at velocity ``c`` to ``t[j]`` lies on the seen side of ``j``'s cut lines, and
+    ``j`` moved to ``t[i]`` of ``i``'s (``edges`` (n, L, >=5),
+    :func:`~nodlidar.tracking.segment.cut_edges`; NaN: no line), within ``tol_m``. Only the
+    pairs whose other point has a line are computed, from 1D gathers (several times faster
+    than gathering rows)."""
     seen = np.ones(len(i), bool)
-    dt = t[j] - t[i]
     px, py = np.ascontiguousarray(p_xy[:, 0]), np.ascontiguousarray(p_xy[:, 1])
     for k in range(edges.shape[1]):
         has = np.isfinite(edges[:, k, 4])

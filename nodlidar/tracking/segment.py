@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import require
 from .scans import ScanPoints
-from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap, carve_samples
+from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap, carve_samples, unique_keys
 
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch",
            "OnlineSegmenter", "window_cut", "cut_edges", "grazing_secant", "seen_apart",
@@ -414,7 +414,7 @@ def seen_through(scan: ScanPoints, idx: np.ndarray, keys: np.ndarray, grid: Voxe
     """
     idx = np.asarray(idx, np.int64)
     out = np.zeros(len(idx), bool)
-    keys = np.unique(np.asarray(keys, np.int64))
+    keys = unique_keys(np.asarray(keys, np.int64))
     if not len(idx) or not len(keys):
         return out
     length = np.nan_to_num(scan.range_m[idx] - scan.ray_offset[idx], nan=0.0)  # [m]

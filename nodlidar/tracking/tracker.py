@@ -61,6 +61,7 @@ import numpy as np
 from ..errors import require
 from .motion import MotionEstimate, coarse_motion, incidence_weights, refine_motion
 from .segment import behind_or_through, cut_edges, seen_apart, seen_through
+from .voxels import unique_keys
 
 if TYPE_CHECKING:
     from .scans import ScanPoints
@@ -713,7 +714,7 @@ class Tracker:
                 continue
             if hits is None:
                 live = scan.valid & ~seg.ground
-                hits = np.unique(self._grid.keys(scan.points[live]))
+                hits = unique_keys(self._grid.keys(scan.points[live]))
             keys = None
             for j in near:
                 g = ci[lab[ci] == labels[j]]
@@ -721,7 +722,7 @@ class Tracker:
                     continue
                 if keys is None:
                     old = [p for p in tr.points if p is not None and len(p)]
-                    keys = np.unique(self._grid.keys(np.concatenate(old))) if old else \
+                    keys = unique_keys(self._grid.keys(np.concatenate(old))) if old else \
                         np.zeros(0, np.int64)
                     # a voxel this scan also hits is not vacated: rays pass beside an edge
                     # there (a start-up ghost's furniture), not through where a mover was
@@ -1172,7 +1173,7 @@ class Tracker:
             [objs[b] for g in groups for b in g]
         if not taken or scan.t_mid_s < self._t0_s + self._static_age_s:
             taken = [np.zeros(0, np.int64)]
-        self._taken.append((scan.t_mid_s, np.unique(self._grid.keys(
+        self._taken.append((scan.t_mid_s, unique_keys(self._grid.keys(
             scan.points[np.concatenate(taken)]))))
         del self._taken[:-_TAKEN_SCANS]
         # two tracks updated in this scan within merge_m of each other follow one object (a
@@ -1206,7 +1207,7 @@ class Tracker:
         (their path; ``TrackerConfig.follow_supported_m_s``: a supported cluster qualifies
         when at least half of its points lie in these voxels)."""
         old = [k for t, k in self._taken if t <= t_s - self._static_age_s]
-        return np.unique(np.concatenate(old)) if old else np.zeros(0, np.int64)
+        return unique_keys(np.concatenate(old)) if old else np.zeros(0, np.int64)
 
     def _add(self, tr: _Track, scan, idx, c, t) -> None:
         tr.points.append(scan.points[idx])

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import require
 
-__all__ = ["VoxelGrid", "VoxelMap", "WindowVoxelMap", "carve_samples"]
+__all__ = ["VoxelGrid", "VoxelMap", "WindowVoxelMap", "carve_samples", "unique_keys"]
 
 _OFF = 1 << 20
 _MASK = (1 << 21) - 1
@@ -74,6 +74,17 @@ def key_from_index(ijk: np.ndarray) -> np.ndarray:
     """(n, 3) int voxel indices -> (n,) int64 keys (each index within +-2**20)."""
     ijk = np.asarray(ijk, dtype=np.int64) + _OFF
     return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+def unique_keys(keys: np.ndarray) -> np.ndarray:
+    """Sorted unique values of a 1D integer array (voxel keys), as ``np.unique(keys)``.
+
+    One sort and a comparison of neighbours: numpy 2's ``np.unique`` hashes, and on a
+    scan's ~40 k carved keys with ~3 k distinct values that takes ~4x as long."""
+    k = np.sort(np.asarray(keys).ravel())
+    if len(k) < 2:
+        return k
+    return k[np.flatnonzero(np.concatenate(([True], k[1:] != k[:-1])))]
 
 
 def index_from_key(keys: np.ndarray) -> np.ndarray:
@@ -217,8 +228,8 @@ class VoxelMap:
         # samples are half a voxel apart along each ray, so consecutive samples mostly share
         # a voxel: dropping the repeats first halves the sort (same unique keys)
         if len(k) > 1:
-            k = k[np.concatenate([[True], k[1:] != k[:-1]])]
-        return np.unique(k)
+            k = k[np.flatnonzero(np.concatenate([[True], k[1:] != k[:-1]]))]
+        return unique_keys(k)
 
     def integrate(self, scan: int, points: np.ndarray, start: np.ndarray, direction: np.ndarray,
                   range_m: np.ndarray, offset_m: np.ndarray, t_s: float = np.nan,
@@ -307,7 +318,7 @@ class WindowVoxelMap(VoxelMap):
         if self.static_age_s > 0:
             p = np.asarray(points, float)
             p = p[np.all(np.isfinite(p), axis=1)]
-            self._hit_keys.append(np.unique(self.grid.keys(p)))
+            self._hit_keys.append(unique_keys(self.grid.keys(p)))
             self._t_s.append(float(t_s))
         while len(self._scans) > self.window_scans:
             self._scans.pop(0)
@@ -336,8 +347,13 @@ class WindowVoxelMap(VoxelMap):
         the scan's time ``t_s`` [s] (class docstring; NaN: no static support applied)."""
         keys = self.grid.keys(points)
         k = np.asarray(scan)
-        out = np.zeros(len(keys), bool)
         scalar = k.ndim == 0  # one scan's points (the online case): the test per kept scan
+        inv = None
+        if scalar and len(keys) > 1:
+            # each voxel once, in order: the ~60 searches below run over fewer keys, sorted
+            # (same answer per point)
+            keys, inv = np.unique(keys, return_inverse=True)
+        out = np.zeros(len(keys), bool)
         for s, fk in zip(self._scans, self._keys):
             if not len(fk):
                 continue
@@ -350,6 +366,8 @@ class WindowVoxelMap(VoxelMap):
                 out |= fk[i] == keys
             else:
                 out |= far & (fk[i] == keys)
+        if inv is not None:
+            out = out[inv]
         if out.any() and self.static_age_s > 0 and np.isfinite(t_s):
             out &= ~self.static_support(points, t_s)
         return out
