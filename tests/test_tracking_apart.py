@@ -184,6 +184,36 @@ def test_a_few_stray_points_do_not_make_a_track_follow_a_second_mover():
     assert b["tracks"] == [1, 2] and b["id_switches"] == 1 and b["scans_followed"] == 4
 
 
+def test_a_track_never_confirmed_is_no_identity():
+    # one mover: track 1 (tentative, one scan: never confirmed) in scan 0, then hidden, then
+    # track 2 (confirmed) to the end - one identity, no switch; a tentative track between two
+    # confirmed ones is no identity either, while a change between two confirmed tracks is
+    from nodlidar.sim.scene import scene_from_dict
+    from nodlidar.tracking.evaluate import OnlineResult, evaluate
+
+    sc = scene_from_dict({"name": "t", "mover": [
+        {"name": "A", "radius_m": 0.18, "height_m": 1.7, "trajectory": "constant_velocity",
+         "start_m": [2.0, 0.0, 0.0], "velocity_m_s": [0.0, 0.3, 0.0]}]})
+
+    def run(tracks_confirmed):
+        res = OnlineResult(sc, False, "renyi", 0, len(tracks_confirmed))
+        for k, (tid, conf) in enumerate(tracks_confirmed):
+            t = 0.1 * k
+            res.records.append({"scan": k, "track": tid, "t_s": t, "x_m": 2.0, "y_m": 0.3 * t,
+                                "v_m_s": 0.3, "heading_rad": np.pi / 2, "confirmed": conf,
+                                "counts": {1: 20}})
+            res.scan_t_s.append(t)
+            res.confirmed.append([])
+        return evaluate(res)["movers"][0]
+
+    a = run([(1, False), (2, False), (2, True), (2, True)])
+    assert a["id_switches"] == 0 and a["tracks"] == [1, 2] and a["tentative_tracks"] == [1]
+    b = run([(2, False), (2, True), (1, False), (2, True)])
+    assert b["id_switches"] == 0 and b["tentative_tracks"] == [1]
+    c = run([(2, False), (2, True), (3, False), (3, True)])  # two reported identities
+    assert c["id_switches"] == 1 and c["tentative_tracks"] == []
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_young_track_does_not_jump_to_the_person_beside_its_own(seed):
     """``design/scenes/track-side-by-side-near.toml``, lifted: two people 0.42 m apart, each
@@ -245,7 +275,8 @@ def test_a_person_walking_straight_away_keeps_one_track(seed, scene_runs):
     track, converged at scan 3-6, final speed within 0.001 m/s and heading 0.13 deg."""
     on = scene_runs("track-walking-away.toml", 70, seed, False, follow_seen_through_m=1.5)
     scene_runs.assert_kept(on)
-    # the failure, without: lost, then a second track
+    # the failure, without: lost, then a second track (in seed 1 the first was never
+    # confirmed: no identity switch since 2026-12-06), never converged
     off = scene_runs("track-walking-away.toml", 70, seed, False,
                      follow_seen_through_m=0.0)["walker"]
-    assert off["conv"] is None and off["id_switches"] >= 1, off
+    assert off["conv"] is None and len(off["tracks"]) >= 2, off

@@ -22,9 +22,12 @@ def test_a_person_seen_once_before_the_blind_part_keeps_the_track(seed, scene_ru
     nearer is it); the right person one track either way."""
     on = scene_runs("track-side-by-side-fast.toml", 45, seed, True, reacquire_births_m_s=1.5)
     scene_runs.assert_kept(on)
-    # the failure, without: a second track for the left person
-    off = scene_runs("track-side-by-side-fast.toml", 45, seed, True, reacquire_births_m_s=0.0)
-    assert off["left"]["id_switches"] == 1 and len(off["left"]["tracks"]) == 2, off["left"]
+    # the failure, without: a second track for the left person (the first, seen once, was
+    # never confirmed: no identity switch since 2026-12-06, but the person is not reported
+    # until their second sighting in the new track)
+    off = scene_runs("track-side-by-side-fast.toml", 45, seed, True,
+                     reacquire_births_m_s=0.0)["left"]
+    assert len(off["tracks"]) == 2 and off["tentative_tracks"] == off["tracks"][:1], off
 
 
 class _Arcs:

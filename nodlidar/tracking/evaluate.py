@@ -22,7 +22,13 @@ live tracker reported at the time (causal):
   scan number (1-based): time since the start. The two differ when a configuration sees the
   object in more of the scans (mirrors: more windows cross it per nod cycle), so a count
   of 15 with mirrors can come sooner than a count of 10 lifted;
-* **identity switches**: how often the track following a mover changes;
+* **identity switches**: how often the track following a mover changes, counted over the
+  tracks the tracker confirmed (its output): a tentative track never confirmed (seen in
+  fewer than ``confirm_scans`` scans, then lost) was never reported as an object, so it is
+  no identity, as CLEAR MOT counts switches between the tracker's hypotheses. Such tracks
+  are listed per mover as ``tentative_tracks`` (and in ``tracks``): a sliver of a person
+  seen once before they walk behind another, then a track from when they come out, is one
+  identity, not two;
 * **purity** of a mover: of the points of the track that followed it longest, the fraction
   that are the mover's;
 * **GOSPA** (Stone Soup's :class:`~stonesoup.metricgenerator.ospametric.GOSPAMetric`,
@@ -201,6 +207,7 @@ def false_tracks(res: OnlineResult) -> int:
 def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
     """Metrics of one online run (module docstring): per mover, and GOSPA."""
     movers = []
+    confirmed = {r["track"] for r in res.records if r["confirmed"]}
     for k in range(len(res.scene.movers)):
         oid = 1 + k
         # per scan, of the tracks this mover is the majority of, the one that took most of
@@ -214,11 +221,14 @@ def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
                 best[r["scan"]] = r
         seq = [best[s] for s in sorted(best)]
         tracks = [r["track"] for r in seq]
-        switches = int(sum(a != b for a, b in zip(tracks, tracks[1:])))
+        # identities: the confirmed tracks, in the order they followed the mover
+        ids = [t for t in tracks if t in confirmed]
+        switches = int(sum(a != b for a, b in zip(ids, ids[1:])))
         row: dict = {"mover": res.scene.movers[k].name, "scans_followed": len(seq),
                      "tracks": sorted(set(tracks)), "id_switches": switches,
                      "purity": None, "conv": None, "conv_scan": None, "final_err_v_m_s": None,
-                     "final_err_heading_deg": None}
+                     "final_err_heading_deg": None,
+                     "tentative_tracks": sorted(set(tracks) - confirmed)}
         if seq:
             main = max(set(tracks), key=tracks.count)
             tot = own = 0
