@@ -208,6 +208,7 @@ def test_a_track_never_confirmed_is_no_identity():
 
     a = run([(1, False), (2, False), (2, True), (2, True)])
     assert a["id_switches"] == 0 and a["tracks"] == [1, 2] and a["tentative_tracks"] == [1]
+    assert a["first_scan"] == 1  # scan 0, the first a track (tentative or not) followed it
     b = run([(2, False), (2, True), (1, False), (2, True)])
     assert b["id_switches"] == 0 and b["tentative_tracks"] == [1]
     c = run([(2, False), (2, True), (3, False), (3, True)])  # two reported identities

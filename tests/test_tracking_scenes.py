@@ -165,6 +165,9 @@ def test_cli_study_scene_json(tmp_path, capsys):
     assert doc["scene"] == "paper-tracking" and len(doc["runs"]) == 2
     assert {r["config"] for r in doc["runs"]} == {"mirrors", "lifted"}
     assert doc["summary"][0]["mover"] == "cylinder"
+    # the cylinder starts in both views: seen as a mover from the first scans in both
+    for cfg in ("mirrors", "lifted"):
+        assert 1 <= doc["summary"][0][f"first_scan_{cfg}"] <= 3
     assert (out / "scene_study.md").stat().st_size > 0
     # the output exists now: refused without --force, one line
     assert main(["study", "mirrors", "--scene", "paper-tracking", "--out", str(out)]) == 2

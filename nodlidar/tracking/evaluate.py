@@ -22,6 +22,11 @@ live tracker reported at the time (causal):
   scan number (1-based): time since the start. The two differ when a configuration sees the
   object in more of the scans (mirrors: more windows cross it per nod cycle), so a count
   of 15 with mirrors can come sooner than a count of 10 lifted;
+* **first scan** of a mover (``first_scan``): the run's scan number (1-based) in which a
+  track first followed it, i.e. when the configuration first saw it as a mover. With the
+  mirrors deployed the view is the middle of the fan (the sides go to the mirrors), so a
+  mover that starts beside the sensor is first seen later than lifted, and its
+  ``conv_scan`` can only be later by as much;
 * **identity switches**: how often the track following a mover changes, counted over the
   tracks the tracker confirmed (its output): a tentative track never confirmed (seen in
   fewer than ``confirm_scans`` scans, then lost) was never reported as an object, so it is
@@ -228,7 +233,8 @@ def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
                      "tracks": sorted(set(tracks)), "id_switches": switches,
                      "purity": None, "conv": None, "conv_scan": None, "final_err_v_m_s": None,
                      "final_err_heading_deg": None,
-                     "tentative_tracks": sorted(set(tracks) - confirmed)}
+                     "tentative_tracks": sorted(set(tracks) - confirmed),
+                     "first_scan": int(seq[0]["scan"]) + 1 if seq else None}
         if seq:
             main = max(set(tracks), key=tracks.count)
             tot = own = 0
@@ -293,7 +299,8 @@ def _median(xs):
 
 def summary_rows(results: list[dict]) -> list[dict]:
     """One row per (entropy, mover): median online convergence over seeds, mirrors vs
-    lifted, converged counts, worst purity, switches, final errors and GOSPA."""
+    lifted, median first scan seen, converged counts, worst purity, switches, final errors
+    and GOSPA."""
     keys = sorted({(r["entropy"], i, m["mover"]) for r in results
                    for i, m in enumerate(r["movers"])})
     rows = []
@@ -305,6 +312,7 @@ def summary_rows(results: list[dict]) -> list[dict]:
             conv = [m["conv"] for m in ms]
             row[f"conv_{cfg}"] = _median(conv)
             row[f"conv_scan_{cfg}"] = _median([m.get("conv_scan") for m in ms])
+            row[f"first_scan_{cfg}"] = _median([m.get("first_scan") for m in ms])
             row[f"converged_{cfg}"] = f"{sum(c is not None for c in conv)}/{len(conv)}"
             pur = [m["purity"] for m in ms if m["purity"] is not None]
             row[f"purity_min_{cfg}"] = min(pur) if pur else None
