@@ -578,14 +578,19 @@ def _occluded_between(scan: ScanPoints, a: np.ndarray, b: np.ndarray, jump_m: fl
     for m in np.intersect1d(mirror[a], mirror[b]):
         sa, sb = np.sort(steps[a][mirror[a] == m]), np.sort(steps[b][mirror[b] == m])
         if sa[-1] < sb[0]:
-            lo, hi = sa[-1], sb[0]
+            first, second = sa, sb
         elif sb[-1] < sa[0]:
-            lo, hi = sb[-1], sa[0]
+            first, second = sb, sa
         else:
             continue  # interleaved in this window
-        # the window's beams from the first cluster's last to the second's first, with
-        # three beams inside each (their surfaces' own steps)
-        w = np.flatnonzero((mirror == m) & (steps >= lo - 3) & (steps <= hi + 3))
+        # the window's beams from the first cluster's last to the second's first, with up
+        # to three beams inside each (their surfaces' own steps) - and none beyond them: a
+        # cluster with fewer beams here must not lend the jump at its outer edge (to the
+        # background) to the test between the two (measured: a box's far corner, two beams
+        # at grazing incidence next to its face, was "seen apart" from the face by the
+        # corner's own silhouette jump, and a second track took the box)
+        lo, hi = max(first[-1] - 3, first[0]), min(second[0] + 3, second[-1])
+        w = np.flatnonzero((mirror == m) & (steps >= lo) & (steps <= hi))
         w = w[np.argsort(steps[w])]
         if len(w) < 2 or np.any(np.diff(steps[w]) != 1) or not np.all(np.isfinite(r[w])):
             continue  # a gap in the window or a beam with no return: the ray test's case
