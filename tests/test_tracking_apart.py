@@ -117,6 +117,28 @@ def test_one_behind_the_other_is_a_jump_in_depth_not_a_grazing_surface():
     assert not seen_apart(pole, left, right)
 
 
+def test_a_cluster_of_few_beams_does_not_lend_its_outer_edge():
+    # a box's face and, beyond its corner, the side face at grazing incidence receding
+    # ~0.1 m per beam, then the background 1 m further: the side face's last two beams as
+    # their own cluster are part of the same surface, and the jump to the background at
+    # their outer edge is not between the two (measured: hd-box-fast, mirrors, seed 5,
+    # scan 26 - a second track took the box)
+    r = np.array([1.90, 1.91, 1.90, 1.89, 1.91, 1.90, 2.00, 2.10, 2.21, 3.15, 3.16, 3.15])
+    th = (np.arange(len(r)) - 6) * STEP
+    d = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], axis=1)
+    n = len(r)
+    scan = ScanPoints(0, np.arange(n), np.zeros(n), np.full(n, -1), r, r[:, None] * d,
+                      np.zeros((n, 3)), d, np.zeros(n))
+    assert not seen_apart(scan, np.arange(7), np.array([7, 8]))
+    # a person behind another's edge is still seen apart from it with few beams of its own:
+    # the jump lies between the two
+    r2 = r.copy()
+    r2[7:9] = [2.45, 2.46]
+    behind = ScanPoints(0, np.arange(n), np.zeros(n), np.full(n, -1), r2, r2[:, None] * d,
+                        np.zeros((n, 3)), d, np.zeros(n))
+    assert seen_apart(behind, np.arange(7), np.array([7, 8]))
+
+
 @pytest.mark.parametrize("mirrors", [True, False])
 def test_people_walking_away_side_by_side_are_two_tracks_from_the_start(mirrors):
     """``design/scenes/track-side-by-side-away.toml``: two people 0.45 m apart walking away
@@ -272,12 +294,13 @@ def test_a_person_walking_straight_away_keeps_one_track(seed, scene_runs):
     at 0.5 m/s. "Free, then occupied" sees it only where the nod comes back to a height;
     in between its clusters are not dynamic, but the rays through where its back was end
     on it (``TrackerConfig.follow_seen_through_m``). Measured, 70 scans, seeds 0-3, without
-    / with: followed in 7-8 / 13-21 scans, 2 tracks (1 switch), never converged / one
-    track, converged at scan 3-6, final speed within 0.001 m/s and heading 0.13 deg."""
+    / with: followed in 7-8 / 13-21 scans, 2 tracks (lost after scan ~8) / one track,
+    converged at scan 3-6, final speed within 0.001 m/s and heading 0.13 deg."""
     on = scene_runs("track-walking-away.toml", 70, seed, False, follow_seen_through_m=1.5)
     scene_runs.assert_kept(on)
-    # the failure, without: lost, then a second track (in seed 1 the first was never
-    # confirmed: no identity switch since 2026-12-06), never converged
+    # the failure, without: lost after a few scans, then a second track (in seed 1 the
+    # second was never confirmed: no identity switch, and its one velocity-less record no
+    # estimate, since 2026-12-06)
     off = scene_runs("track-walking-away.toml", 70, seed, False,
                      follow_seen_through_m=0.0)["walker"]
-    assert off["conv"] is None and len(off["tracks"]) >= 2, off
+    assert off["scans_followed"] <= 8 and len(off["tracks"]) >= 2, off

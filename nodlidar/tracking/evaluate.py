@@ -16,12 +16,14 @@ live tracker reported at the time (causal):
   that scan (a miss, not a change of identity);
 * **online convergence** of a mover: its estimates are those of the track following it, in
   the scans where one does (1-based count of those scans, as the paper counts scans with the
-  object); the first count after which every estimate stays within ``V_TOL_M_S`` (0.01 m/s)
-  of the true speed and ``HEADING_TOL_DEG`` (2 deg) of the true heading at the estimate's
-  time; None when the last estimate is not. ``conv_scan`` is the same moment as the run's
-  scan number (1-based): time since the start. The two differ when a configuration sees the
-  object in more of the scans (mirrors: more windows cross it per nod cycle), so a count
-  of 15 with mirrors can come sooner than a count of 10 lifted;
+  object; tracks never confirmed - one sighting, no velocity, never reported - are left
+  out, as for identity switches and purity); the first count after which every estimate
+  stays within ``V_TOL_M_S`` (0.01 m/s) of the true speed and ``HEADING_TOL_DEG`` (2 deg)
+  of the true heading at the estimate's time; None when the last estimate is not.
+  ``conv_scan`` is the same moment as the run's scan number (1-based): time since the
+  start. The two differ when a configuration sees the object in more of the scans
+  (mirrors: more windows cross it per nod cycle), so a count of 15 with mirrors can come
+  sooner than a count of 10 lifted;
 * **first scan** of a mover (``first_scan``): the run's scan number (1-based) in which a
   track first followed it, i.e. when the configuration first saw it as a mover. With the
   mirrors deployed the view is the middle of the fan (the sides go to the mirrors), so a
@@ -34,8 +36,8 @@ live tracker reported at the time (causal):
   are listed per mover as ``tentative_tracks`` (and in ``tracks``): a sliver of a person
   seen once before they walk behind another, then a track from when they come out, is one
   identity, not two;
-* **purity** of a mover: of the points of the track that followed it longest, the fraction
-  that are the mover's;
+* **purity** of a mover: of the points of the (confirmed) track that followed it longest,
+  the fraction that are the mover's;
 * **GOSPA** (Stone Soup's :class:`~stonesoup.metricgenerator.ospametric.GOSPAMetric`,
   p = 1, c = ``gospa_c_m``, alpha = 2): per scan, the confirmed tracks' positions against
   the movers' true positions, averaged over the scans;
@@ -235,8 +237,12 @@ def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
                      "final_err_heading_deg": None,
                      "tentative_tracks": sorted(set(tracks) - confirmed),
                      "first_scan": int(seq[0]["scan"]) + 1 if seq else None}
+        # the estimates the tracker reported: a track never confirmed (one sighting, no
+        # velocity yet) was not one, so its record is neither a wrong estimate nor the end
+        # of the mover's sequence
+        seq = [r for r in seq if r["track"] in confirmed]
         if seq:
-            main = max(set(tracks), key=tracks.count)
+            main = max(set(ids), key=ids.count)
             tot = own = 0
             for r in res.records:
                 if r["track"] == main:
