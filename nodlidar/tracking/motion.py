@@ -463,8 +463,8 @@ def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.
     # the same float32 operations as written out in the docstring, into two scratch
     # arrays instead of a new one per product (six pair-length arrays instead of ~15)
     e = dx * dx
-    w = dy * dy
-    e += w  # d^2
+    scratch = dy * dy
+    e += scratch  # d^2
     if not cost.plane:
         e += cost.dz2
     c = float(cost.inv4s2)
@@ -474,7 +474,7 @@ def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.
         e *= cost.pw
     f64 = np.float64
     s_e = float(np.sum(e, dtype=f64))
-    edt = np.multiply(e, cost.dt, out=w)
+    edt = np.multiply(e, cost.dt, out=scratch)
     ex, ey = edt * dx, edt * dy  # e d dt
     gx, gy = float(np.sum(ex, dtype=f64)), float(np.sum(ey, dtype=f64))
 
