@@ -111,3 +111,53 @@ def test_cli_design_imports_no_scipy(design):
                 if line.startswith("import time:")]
     assert "nodlidar.solver" in imported  # the importtime listing is the real one
     assert [m for m in imported if m.split(".")[0] in DESIGN_FORBIDDEN] == []
+
+
+def _study_scenes():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("study_scenes",
+                                                  ROOT / "benchmarks" / "study_scenes.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _run(case, config, seed, conv, conv_scan, switches=0, purity=1.0):
+    return {"case": case, "config": config, "seed": seed, "false_tracks": 0,
+            "movers": [{"mover": "P", "conv": conv, "conv_scan": conv_scan, "first_scan": 2,
+                        "id_switches": switches, "purity": purity, "final_err_v_m_s": 0.001,
+                        "final_err_heading_deg": 0.1}]}
+
+
+def test_study_scenes_criteria_from_runs():
+    """benchmarks/study_scenes.py's summary: medians over seeds (not converged = later than
+    any), and the lists of the issue's criteria it fails."""
+    mod = _study_scenes()
+    runs = []
+    for seed in range(4):
+        runs += [_run("a", "mirrors", seed, 5, 20 + seed), _run("a", "lifted", seed, 4, 10)]
+        runs += [_run("track-crossing", "mirrors", seed, None if seed < 3 else 3, None,
+                      switches=int(seed == 1)),
+                 _run("track-crossing", "lifted", seed, 3, 9)]
+    crit = mod.summary(runs)["criteria"]
+    assert crit["mirrors_later_by_time"] == ["a P: 21.5 / 10"]
+    assert crit["mirrors_later_by_count"] == ["a P: 5 / 4"]
+    assert crit["mirrors_not_converged_where_lifted"] == ["track-crossing P: - / 9"]
+    assert crit["mirrors_fewer_seeds_converged"] == ["track-crossing P: 1 / 4"]
+    assert crit["identity_failures"] == ["track-crossing P mirrors seeds [1]"]
+
+
+def test_study_scenes_runs_and_resumes(tmp_path):
+    """One case, one seed: two runs appended to the JSON lines file, not run again."""
+    out = tmp_path / "runs.jsonl"
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "study_scenes.py"), str(out), "--only",
+           "track-range-1m", "--seeds", "1", "--jobs", "1"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    assert "| track-range-1m | cylinder |" in p.stdout
+    lines = out.read_text().splitlines()
+    assert sorted(json.loads(x)["config"] for x in lines) == ["lifted", "mirrors"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0 and "0 runs (2 already in" in p.stderr, p.stderr
+    assert out.read_text().splitlines() == lines

@@ -1,0 +1,232 @@
+"""Issue 13's criteria over every tracking scene and the speed x heading grid (not timed).
+
+Runs the live tracker online (:func:`nodlidar.tracking.evaluate.run_online`, Rényi) on
+
+* every ``design/scenes/track-*.toml`` and ``paper-tracking.toml`` (90 scans; the box,
+  person-sized box and range scenes 60, the paper's case 38, the scenes whose comment asks
+  for fewer: as asked),
+* the grid: the paper's cylinder on a 3 m back-and-forth leg through (2.5, 0) at
+  0.05/0.13/0.3/0.6/1.0 m/s x 0/45/89.4/135 deg (80 scans),
+* any further scene files given with ``--extra`` (``FILE`` or ``FILE@SCANS``),
+
+mirrors deployed and lifted, over noise seeds, in ``--jobs`` processes, and appends one
+JSON line per run (:func:`~nodlidar.tracking.evaluate.evaluate`'s dict plus ``case``) to
+``OUT``: a run already in ``OUT`` is not run again, so an interrupted study resumes.
+Then it prints, per case and mover, the median online convergence by count and by scan
+number (time), mirrors / lifted, and the issue's criteria: crossing and side-by-side
+identities, mirrors later than lifted (by time and by count), mirrors converging in fewer
+seeds, false tracks. ``--summary`` only prints the summary of ``OUT``.
+
+Usage::
+
+    python benchmarks/study_scenes.py OUT.jsonl [--seeds 8] [--jobs 2] [--only SUBSTR]
+        [--extra FILE[@SCANS] ...] [--summary]
+
+A full run (62 cases x 8 seeds x 2 configurations) takes ~10 minutes on two cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENES = ROOT / "design" / "scenes"
+GRID_SPEEDS = (0.05, 0.13, 0.3, 0.6, 1.0)
+GRID_HEADINGS = (0.0, 45.0, 89.4, 135.0)
+# the scenes of two or more people that the issue's identity criterion covers
+IDENTITY_CASES = ("crossing", "side-by-side", "cross", "sbs")
+
+
+def grid_scene(speed: float, heading_deg: float, length_m: float = 3.0) -> dict:
+    """The grid's scene: the paper's cylinder on a back-and-forth leg through (2.5, 0)."""
+    u = np.array([np.cos(np.radians(heading_deg)), np.sin(np.radians(heading_deg))])
+    s = np.array([2.5, 0.0]) - length_m / 2 * u
+    return {"name": f"grid {speed} x {heading_deg:g}",
+            "room": {"size_m": [8.0, 6.0, 2.5], "center_m": [2.5, 0.0], "ceiling": False},
+            "mover": [{"radius_m": 0.18, "height_m": 1.0, "trajectory": "back_and_forth",
+                       "start_m": [float(s[0]), float(s[1]), 0.0],
+                       "heading_deg": heading_deg, "length_m": length_m,
+                       "speed_m_s": speed}]}
+
+
+def _scans_for(path: Path) -> int:
+    name = path.stem
+    if name == "paper-tracking":
+        return 38
+    if name.startswith(("track-range-", "track-box", "track-person-box")):
+        return 60
+    m = re.search(r"Run (\d+) scans", path.read_text())
+    return int(m.group(1)) if m and int(m.group(1)) < 90 else 90
+
+
+def cases(extra: list[str]) -> list[tuple[str, str, int]]:
+    """(case name, scene source: a file path or 'grid:SPEED:HEADING', scans)."""
+    out = []
+    for p in sorted(SCENES.glob("track-*.toml")) + [SCENES / "paper-tracking.toml"]:
+        out.append((p.stem, str(p), _scans_for(p)))
+    for v in GRID_SPEEDS:
+        for h in GRID_HEADINGS:
+            out.append((f"grid {v} x {h:g}", f"grid:{v}:{h}", 80))
+    for e in extra:
+        f, _, n = e.partition("@")
+        out.append((Path(f).stem, str(Path(f).resolve()), int(n) if n else 90))
+    return out
+
+
+def _run(case: str, src: str, n_scans: int, seed: int, mirrors: bool) -> dict:
+    from nodlidar.sim.scene import load_scene, scene_from_dict
+    from nodlidar.solver import solve
+    from nodlidar.spec import load_design
+    from nodlidar.tracking.evaluate import evaluate, run_online
+
+    if src.startswith("grid:"):
+        _, v, h = src.split(":")
+        scene = scene_from_dict(grid_scene(float(v), float(h)))
+    else:
+        scene = load_scene(src)
+    design = solve(load_design(ROOT / "design" / "urg04lx-paper.toml"))
+    res = evaluate(run_online(design, scene, n_scans, mirrors_deployed=mirrors, seed=seed))
+    res["case"] = case
+    return res
+
+
+def _median(xs):
+    v = sorted(np.inf if x is None else x for x in xs)
+    m = float(np.median(v)) if v else np.inf
+    return None if not np.isfinite(m) else m
+
+
+def _fmt(x):
+    return "-" if x is None else f"{x:g}"
+
+
+def summary(runs: list[dict]) -> dict:
+    """Per (case, mover) medians and the criteria's failures."""
+    rows = []
+    for case in sorted({r["case"] for r in runs}):
+        rs = [r for r in runs if r["case"] == case]
+        for i, name in enumerate(m["mover"] for m in rs[0]["movers"]):
+            row = {"case": case, "mover": name, "first": i == 0}
+            for cfg in ("mirrors", "lifted"):
+                ms = [r["movers"][i] for r in rs if r["config"] == cfg]
+                row[f"conv_{cfg}"] = _median([m["conv"] for m in ms])
+                row[f"conv_scan_{cfg}"] = _median([m["conv_scan"] for m in ms])
+                row[f"first_scan_{cfg}"] = _median([m.get("first_scan") for m in ms])
+                row[f"converged_{cfg}"] = sum(m["conv"] is not None for m in ms)
+                row[f"seeds_{cfg}"] = len(ms)
+                row[f"switches_{cfg}"] = sum(m["id_switches"] for m in ms)
+                pur = [m["purity"] for m in ms if m["purity"] is not None]
+                row[f"purity_min_{cfg}"] = min(pur) if pur else None
+                row[f"false_tracks_{cfg}"] = sum(r["false_tracks"] for r in rs
+                                                 if r["config"] == cfg)
+                ev = [abs(m["final_err_v_m_s"]) for m in ms if m["final_err_v_m_s"] is not None]
+                eh = [abs(m["final_err_heading_deg"]) for m in ms
+                      if m["final_err_heading_deg"] is not None]
+                row[f"max_err_v_{cfg}"] = max(ev) if ev else None
+                row[f"max_err_heading_{cfg}"] = max(eh) if eh else None
+                row[f"identity_fail_{cfg}"] = [
+                    r["seed"] for r, m in zip([r for r in rs if r["config"] == cfg], ms)
+                    if m["id_switches"] or (m["purity"] or 0) < 0.9
+                    or m["final_err_v_m_s"] is None or abs(m["final_err_v_m_s"]) > 0.03
+                    or abs(m["final_err_heading_deg"]) > 5.0]
+            rows.append(row)
+
+    def later(key):
+        out = []
+        for r in rows:
+            a, b = r[f"{key}_mirrors"], r[f"{key}_lifted"]
+            if a is not None and b is not None and a > b:
+                out.append(f"{r['case']} {r['mover']}: {a:g} / {b:g}")
+        return out
+
+    crit = {
+        "mirrors_later_by_time": later("conv_scan"),
+        "mirrors_later_by_count": later("conv"),
+        "mirrors_not_converged_where_lifted": [
+            f"{r['case']} {r['mover']}: {_fmt(r['conv_scan_mirrors'])} / "
+            f"{_fmt(r['conv_scan_lifted'])}"
+            for r in rows if r["conv_scan_mirrors"] is None and r["conv_scan_lifted"] is not None],
+        "mirrors_fewer_seeds_converged": [
+            f"{r['case']} {r['mover']}: {r['converged_mirrors']} / {r['converged_lifted']}"
+            for r in rows if r["converged_mirrors"] < r["converged_lifted"]],
+        "identity_failures": [
+            f"{r['case']} {r['mover']} {cfg} seeds {r[f'identity_fail_{cfg}']}"
+            for r in rows if any(k in r["case"] for k in IDENTITY_CASES)
+            for cfg in ("mirrors", "lifted") if r[f"identity_fail_{cfg}"]],
+        "switches": {cfg: sum(r[f"switches_{cfg}"] for r in rows)
+                     for cfg in ("mirrors", "lifted")},
+        "false_tracks": {cfg: sum(r[f"false_tracks_{cfg}"] for r in rows if r["first"])
+                         for cfg in ("mirrors", "lifted")},
+        "movers": len(rows),
+    }
+    return {"rows": rows, "criteria": crit}
+
+
+def print_summary(s: dict) -> None:
+    print("| case | mover | by count M / L | by time M / L | first seen M / L | converged M / L "
+          "| switches M / L | min purity M / L | false tracks M / L |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in s["rows"]:
+        pm, pl = r["purity_min_mirrors"], r["purity_min_lifted"]
+        print(f"| {r['case']} | {r['mover']} | {_fmt(r['conv_mirrors'])} / "
+              f"{_fmt(r['conv_lifted'])} | {_fmt(r['conv_scan_mirrors'])} / "
+              f"{_fmt(r['conv_scan_lifted'])} | {_fmt(r['first_scan_mirrors'])} / "
+              f"{_fmt(r['first_scan_lifted'])} | {r['converged_mirrors']}/{r['seeds_mirrors']}"
+              f" / {r['converged_lifted']}/{r['seeds_lifted']} | {r['switches_mirrors']} / "
+              f"{r['switches_lifted']} | {'-' if pm is None else f'{pm:.2f}'} / "
+              f"{'-' if pl is None else f'{pl:.2f}'} | {r['false_tracks_mirrors']} / "
+              f"{r['false_tracks_lifted']} |")
+    c = s["criteria"]
+    print(f"\n{c['movers']} movers")
+    for k in ("mirrors_later_by_time", "mirrors_later_by_count",
+              "mirrors_not_converged_where_lifted", "mirrors_fewer_seeds_converged",
+              "identity_failures"):
+        print(f"{k}: {len(c[k])}")
+        for x in c[k]:
+            print(f"  {x}")
+    print(f"switches: {c['switches']}; false tracks: {c['false_tracks']}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--seeds", type=int, default=8)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--only", default=None, help="cases whose name contains this")
+    ap.add_argument("--extra", nargs="*", default=[])
+    ap.add_argument("--summary", action="store_true", help="only summarise OUT")
+    args = ap.parse_args(argv)
+    done = set()
+    if args.out.exists():
+        for line in args.out.read_text().splitlines():
+            r = json.loads(line)
+            done.add((r["case"], r["seed"], r["config"]))
+    if not args.summary:
+        todo = [(c, src, n, seed, dep) for c, src, n in cases(args.extra)
+                if args.only is None or args.only in c
+                for seed in range(args.seeds) for dep in (True, False)
+                if (c, seed, "mirrors" if dep else "lifted") not in done]
+        print(f"{len(todo)} runs ({len(done)} already in {args.out})", file=sys.stderr)
+        with ProcessPoolExecutor(args.jobs) as ex, args.out.open("a") as f:
+            futs = [ex.submit(_run, *t) for t in todo]
+            for k, fut in enumerate(as_completed(futs), 1):
+                f.write(json.dumps(fut.result()) + "\n")
+                f.flush()
+                if k % 20 == 0 or k == len(futs):
+                    print(f"  {k}/{len(futs)}", file=sys.stderr)
+    runs = [json.loads(line) for line in args.out.read_text().splitlines()]
+    if args.only:
+        runs = [r for r in runs if args.only in r["case"]]
+    print_summary(summary(runs))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
