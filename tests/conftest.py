@@ -225,7 +225,8 @@ def pytest_ignore_collect(collection_path, config):
 
 class SceneRuns:
     """The live tracker on a scene of ``design/scenes`` with the paper's design (solved
-    once): ``scene_runs(name, scans, seed, mirrors, **tracker_config)`` returns
+    once): ``scene_runs(name, scans, seed, mirrors, segment=None, **tracker_config)``
+    (``segment``: a dict of :class:`~nodlidar.tracking.segment.SegmentConfig` fields) returns
     :func:`nodlidar.tracking.evaluate.evaluate`'s per-mover rows by mover name."""
 
     def __init__(self):
@@ -235,14 +236,17 @@ class SceneRuns:
 
         self.design = solve(load_design(PAPER_DESIGN))
 
-    def __call__(self, name: str, scans: int, seed: int, mirrors: bool, **tracker) -> dict:
+    def __call__(self, name: str, scans: int, seed: int, mirrors: bool,
+                 segment: dict | None = None, **tracker) -> dict:
         from nodlidar.sim.scene import load_scene
         from nodlidar.tracking.evaluate import evaluate, run_online
+        from nodlidar.tracking.segment import SegmentConfig
         from nodlidar.tracking.tracker import TrackerConfig
 
         scene = load_scene(Path(__file__).resolve().parents[1] / "design" / "scenes" / name)
         res = run_online(self.design, scene, scans, mirrors_deployed=mirrors, seed=seed,
-                         tracker=TrackerConfig(**tracker))
+                         tracker=TrackerConfig(**tracker),
+                         segment=SegmentConfig(**(segment or {})))
         return {m["mover"]: m for m in evaluate(res)["movers"]}
 
     @staticmethod

@@ -150,6 +150,45 @@ def test_a_fast_box_keeps_one_track(scene_runs):
     assert box["id_switches"] == 0 and box["tracks"] == [1] and box["purity"] >= 0.99, box
 
 
+@pytest.mark.parametrize("range_m", [2.6, 2.8, 3.0])
+def test_one_cluster_of_two_people_is_split_where_the_scan_saw_them_apart(range_m):
+    # two people 0.42 m apart, a 6 cm gap: beyond ~2.5 m the clustering's linking distance
+    # (4 beam spacings) bridges it and they are one cluster; the beams through the gap
+    # split it, into exactly the two people
+    from nodlidar.tracking.segment import SegmentConfig, _split_seen_apart, cluster_points
+
+    cfg = SegmentConfig()
+    scan, obj = _scan([(range_m, -0.21, 0.18), (range_m, 0.21, 0.18)])
+    lab = np.where(obj > 0, 0, -1)
+    idx = np.flatnonzero(obj > 0)
+    eps = np.clip(cfg.cluster_beams * scan.range_m[idx] * STEP, cfg.cluster_min_m,
+                  cfg.cluster_radius_m)
+    assert cluster_points(scan.points[idx, :2], eps).max() == 0  # one cluster
+    assert _split_seen_apart(scan, lab, np.array([0]), cfg)
+    assert len(np.unique(lab[idx])) == 2
+    for c in np.unique(lab[idx]):
+        assert len(np.unique(obj[lab == c])) == 1  # each part is one person, whole
+    # one object as wide as two people is not split (nothing seen through it)
+    one, obj1 = _scan([(range_m, 0.0, 0.4)])
+    lab1 = np.where(obj1 > 0, 0, -1)
+    assert not _split_seen_apart(one, lab1, np.array([0]), cfg)
+
+
+def test_two_people_in_one_cluster_keep_their_tracks(scene_runs):
+    """``design/scenes/track-side-by-side-near.toml``, mirrors, seed 6: the two people were
+    one cluster in scan 4, the right person's young track took it, its first velocity came
+    from the merged centroid (0.39 m/s at -118 deg for 0.3 m/s at -160 deg) and from scan 7
+    it followed the left person; the right person got a second track. Split where the scan
+    saw them apart (``SegmentConfig.split_seen_apart_beams``), each keeps one."""
+    movers = scene_runs("track-side-by-side-near.toml", 20, 6, True)
+    for m in movers.values():
+        assert m["id_switches"] == 0 and len(m["tracks"]) == 1 and m["purity"] >= 0.99, m
+    # fails without the split: the right person's two tracks
+    old = scene_runs("track-side-by-side-near.toml", 20, 6, True,
+                     segment={"split_seen_apart_beams": 0})
+    assert old["right"]["id_switches"] == 1, old["right"]
+
+
 @pytest.mark.parametrize("mirrors", [True, False])
 def test_people_walking_away_side_by_side_are_two_tracks_from_the_start(mirrors):
     """``design/scenes/track-side-by-side-away.toml``: two people 0.45 m apart walking away
