@@ -20,7 +20,10 @@ seeds, false tracks. ``--summary`` only prints the summary of ``OUT``.
 Usage::
 
     python benchmarks/study_scenes.py OUT.jsonl [--seeds 8] [--jobs 2] [--only SUBSTR]
-        [--extra FILE[@SCANS] ...] [--summary]
+        [--extra FILE[@SCANS] ...] [--set tracker.FIELD=VALUE ...] [--summary]
+
+``--set`` measures an option against the defaults (one OUT file per setting: the runs in
+``OUT`` are not keyed by it).
 
 A full run (62 cases x 8 seeds x 2 configurations) takes ~10 minutes on two cores.
 """
@@ -80,7 +83,16 @@ def cases(extra: list[str]) -> list[tuple[str, str, int]]:
     return out
 
 
-def _run(case: str, src: str, n_scans: int, seed: int, mirrors: bool) -> dict:
+def _value(text: str):
+    """A ``--set`` value: JSON (numbers, true/false, lists) or else the text itself."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def _run(case: str, src: str, n_scans: int, seed: int, mirrors: bool,
+         overrides: dict | None = None) -> dict:
     from nodlidar.sim.scene import load_scene, scene_from_dict
     from nodlidar.solver import solve
     from nodlidar.spec import load_design
@@ -91,8 +103,14 @@ def _run(case: str, src: str, n_scans: int, seed: int, mirrors: bool) -> dict:
         scene = scene_from_dict(grid_scene(float(v), float(h)))
     else:
         scene = load_scene(src)
+    from nodlidar.tracking.segment import SegmentConfig
+    from nodlidar.tracking.tracker import TrackerConfig
+
+    ov = overrides or {}
     design = solve(load_design(ROOT / "design" / "urg04lx-paper.toml"))
-    res = evaluate(run_online(design, scene, n_scans, mirrors_deployed=mirrors, seed=seed))
+    res = evaluate(run_online(design, scene, n_scans, mirrors_deployed=mirrors, seed=seed,
+                              tracker=TrackerConfig(**ov.get("tracker", {})),
+                              segment=SegmentConfig(**ov.get("segment", {}))))
     res["case"] = case
     return res
 
@@ -202,7 +220,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default=None, help="cases whose name contains this")
     ap.add_argument("--extra", nargs="*", default=[])
     ap.add_argument("--summary", action="store_true", help="only summarise OUT")
+    ap.add_argument("--set", nargs="*", default=[], metavar="tracker.FIELD=VALUE",
+                    help="TrackerConfig / SegmentConfig fields other than the defaults "
+                         "(e.g. tracker.reacquire_moving=true segment.split_seen_apart_beams=0)")
     args = ap.parse_args(argv)
+    overrides: dict[str, dict] = {"tracker": {}, "segment": {}}
+    for item in args.set:
+        key, eq, val = item.partition("=")
+        which, dot, name = key.partition(".")
+        if not eq or not dot or which not in overrides:
+            ap.error(f"--set {item!r}: expected tracker.FIELD=VALUE or segment.FIELD=VALUE")
+        overrides[which][name] = _value(val)
     done = set()
     if args.out.exists():
         for line in args.out.read_text().splitlines():
@@ -215,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
                 if (c, seed, "mirrors" if dep else "lifted") not in done]
         print(f"{len(todo)} runs ({len(done)} already in {args.out})", file=sys.stderr)
         with ProcessPoolExecutor(args.jobs) as ex, args.out.open("a") as f:
-            futs = [ex.submit(_run, *t) for t in todo]
+            futs = [ex.submit(_run, *t, overrides) for t in todo]
             for k, fut in enumerate(as_completed(futs), 1):
                 f.write(json.dumps(fut.result()) + "\n")
                 f.flush()

@@ -180,3 +180,51 @@ def test_a_moving_track_that_turned_unseen_is_reacquired_only_when_asked():
         trk.update(s)
     trk.update(_Arcs(22, [(3.0, -0.36 - 1.5)]))
     assert sorted(trk.tracks) == [1, 2]
+
+
+def _pacing(k_back: int, x_back: float = 3.0, v_back: float = -0.04):
+    """Scans 0-9: a mover at x 3.0 m going +y at 0.4 m/s; 10-21: nothing (the nod's blind
+    part; it turns at scan 16, at y -0.36); from 22 to ``k_back``: seen again at
+    ``x_back``, moving ``v_back`` m per scan along y from where it would be after the turn."""
+    seen = [_Arcs(k, [(3.0, -1.0 + 0.04 * k)]) for k in range(10)]
+    gap = [_Arcs(k) for k in range(10, 22)]
+    back = [_Arcs(k, [(x_back, -0.36 - 0.04 * 6 + v_back * (k - 22))])
+            for k in range(22, k_back)]
+    return seen + gap + back
+
+
+def test_a_track_lost_while_it_turned_is_continued_when_the_motions_meet():
+    """``TrackerConfig.stitch_turned_m``: a mover that turned in the nod's blind part is
+    seen again beyond every gate of its track (the grid's back-and-forth movers at 0.6
+    and 1.0 m/s: one switch per seed before). The new track's motion, traced back, meets
+    the lost track's at the turn: the lost track continues, the new one is never
+    confirmed (never reported as an object). Without it: two confirmed tracks."""
+    trk = Tracker(TrackerConfig())
+    out = [st for s in _pacing(28) for st in trk.update(s)]
+    assert sorted(trk.tracks) == [1] and trk.tracks[1].scans[-1] == 27
+    assert trk.tracks[1].start == 10  # the motion starts afresh with the new sighting
+    assert float(trk.tracks[1].x[3]) < -0.3  # now going -y
+    # track 2 was reported only as tentative, and ended when track 1 took its scans
+    assert not any(st.confirmed for st in out if st.track_id == 2)
+    assert [st.alive for st in out if st.track_id == 2][-1] is False
+    assert 2 not in [t.track_id for t in trk.all_tracks()]  # its points are track 1's now
+    old = _run_with(_pacing(28), stitch_turned_m=0.0)  # fails without: two tracks
+    assert sorted(old.tracks) == [1, 2] and old.tracks[2].scans[-1] == 27
+
+
+def _run_with(scans, **config) -> Tracker:
+    trk = Tracker(TrackerConfig(**config))
+    for s in scans:
+        trk.update(s)
+    return trk
+
+
+def test_a_new_track_whose_motion_does_not_meet_the_lost_one_is_its_own():
+    # the same gap, but the new object walks 0.5 m to the side of the turn (parallel paths
+    # 0.5 m apart never meet), or at 1.0 m/s (2.5 times the lost track's speed): another
+    # mover, not the lost one turned
+    for scans in (_pacing(28, x_back=3.5), _pacing(28, v_back=-0.1)):
+        trk = _run(scans)
+        assert 2 in trk.tracks and trk.tracks[2].scans[0] == 22, sorted(trk.tracks)
+        assert trk.tracks[2].scans[-1] == 27 and trk.tracks[2].parent is None
+        assert trk.tracks[1].scans[-1] == 9  # the lost track kept nothing of it
