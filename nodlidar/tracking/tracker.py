@@ -244,15 +244,16 @@ class TrackerConfig:
         velocity, it continues the lost track when their motions meet: the lost track's
         path from where it was last seen and the new track's path traced back come within
         this distance [m] of each other at one moment between the sightings (where and when
-        it turned), at speeds within 30 % (or 0.1 m/s). The lost track then takes the new
+        it turned), at speeds within 30 % (or 0.1 m/s) plus twice the lost track's speed
+        uncertainty. The lost track then takes the new
         one's scans, its motion starting afresh. A static ghost, or another mover that
         appears where the lost one might have turned, does not move from that place and
         moment. Measured, seeds 0-7, every scene and the grid (928 mover-runs): identity
-        switches mirrors / lifted 57 / 52 -> 8 / 5 (the grid's back-and-forth movers, the
-        furnished room's walker), no other mover-run's identity or purity changed; on 17
-        held-out-style scenes (crossings, side by side, a robot crossing a person's path, a
-        cart pushed past a table, two people pacing) 25 / 15 -> 4 / 8, none re-acquired by
-        the wrong object (docs/tracking.md "A mover that turned unseen"). 0: off.
+        switches mirrors / lifted 57 / 52 -> 4 / 5 (the grid's back-and-forth movers, three
+        people, the furnished room's walker), no other mover-run's identity or purity
+        changed; on 17 held-out-style scenes (crossings, side by side, a robot crossing a
+        person's path, a cart pushed past a table, two people pacing) 25 / 15 -> 3 / 8
+        (docs/tracking.md "A mover that turned unseen"). 0: off.
     turn_reach_m : float
         A track with a velocity, seen in one of the last ``turn_scans`` scans, may take a
         cluster that fails its constant-velocity gates but lies within ``turn_reach_m`` +
@@ -843,7 +844,7 @@ class Tracker:
         the parent's path from where it was last seen and the new track's path traced back
         from where it is now come within ``stitch_turned_m`` of each other at one moment
         between the two sightings (the place and time it turned), at speeds within 30 %
-        (or 0.1 m/s) of each other. Then the parent takes the new track's scans (its motion
+        (or 0.1 m/s), plus twice the lost track's speed uncertainty, of each other. Then the parent takes the new track's scans (its motion
         starting afresh with them, as after a turn) and the new track, never reported,
         ends. Returns the parent, or None (``tr`` goes on, pending or as its own track).
         """
@@ -858,7 +859,11 @@ class Tracker:
         p1, t1, v1 = np.asarray(par.centroids[-1]), par.t_centroids[-1], par.x[2:]
         p2, t2, v2 = np.asarray(tr.centroids[-1]), tr.t_centroids[-1], tr.x[2:]
         s1, s2 = float(np.hypot(*v1)), float(np.hypot(*v2))
-        if abs(s2 - s1) > max(0.3 * s1, 0.1) or t2 <= t1:
+        # the lost track's speed is as sure as its filter says (seen twice: a few cm/s to
+        # tenths of a m/s)
+        u1 = v1 / max(s1, 1e-9)
+        sd1 = float(np.sqrt(max(float(u1 @ par.cov[2:, 2:] @ u1), 0.0)))
+        if abs(s2 - s1) > max(0.3 * s1, 0.1) + 2.0 * sd1 or t2 <= t1:
             return None
         # the gap between the two paths at time t, A + B (t - t1), closest on [t1, t2]
         a = p1 - (p2 + v2 * (t1 - t2))
