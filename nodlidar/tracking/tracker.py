@@ -844,9 +844,10 @@ class Tracker:
         the parent's path from where it was last seen and the new track's path traced back
         from where it is now come within ``stitch_turned_m`` of each other at one moment
         between the two sightings (the place and time it turned), at speeds within 30 %
-        (or 0.1 m/s), plus twice the lost track's speed uncertainty, of each other. Then the parent takes the new track's scans (its motion
-        starting afresh with them, as after a turn) and the new track, never reported,
-        ends. Returns the parent, or None (``tr`` goes on, pending or as its own track).
+        (or 0.1 m/s), plus twice the lost track's speed uncertainty, of each other. Then
+        the parent takes the new track's scans (its motion starting afresh with them, as
+        after a turn) and the new track, never reported, ends. Returns the parent, or None
+        (``tr`` goes on, pending or as its own track).
         """
         cfg = self.config
         par = self.tracks.get(tr.parent) if tr.parent is not None else None
