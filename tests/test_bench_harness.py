@@ -123,7 +123,7 @@ def _study_scenes():
     return mod
 
 
-def _run(case, config, seed, conv, conv_scan, switches=0, purity=1.0):
+def _study_run(case, config, seed, conv, conv_scan, switches=0, purity=1.0):
     return {"case": case, "config": config, "seed": seed, "false_tracks": 0,
             "movers": [{"mover": "P", "conv": conv, "conv_scan": conv_scan, "first_scan": 2,
                         "id_switches": switches, "purity": purity, "final_err_v_m_s": 0.001,
@@ -136,10 +136,11 @@ def test_study_scenes_criteria_from_runs():
     mod = _study_scenes()
     runs = []
     for seed in range(4):
-        runs += [_run("a", "mirrors", seed, 5, 20 + seed), _run("a", "lifted", seed, 4, 10)]
-        runs += [_run("track-crossing", "mirrors", seed, None if seed < 3 else 3, None,
-                      switches=int(seed == 1)),
-                 _run("track-crossing", "lifted", seed, 3, 9)]
+        runs += [_study_run("a", "mirrors", seed, 5, 20 + seed),
+                 _study_run("a", "lifted", seed, 4, 10)]
+        runs += [_study_run("track-crossing", "mirrors", seed, None if seed < 3 else 3, None,
+                            switches=int(seed == 1)),
+                 _study_run("track-crossing", "lifted", seed, 3, 9)]
     crit = mod.summary(runs)["criteria"]
     assert crit["mirrors_later_by_time"] == ["a P: 21.5 / 10"]
     assert crit["mirrors_later_by_count"] == ["a P: 5 / 4"]
