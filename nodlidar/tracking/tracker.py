@@ -152,16 +152,18 @@ class TrackerConfig:
     confirm_scans, max_missed, window_scans : int
     confirm_speed_m_s : float
         A track is confirmed (reported as an object) once seen in ``confirm_scans`` scans
-        *and* once its speed has reached this [m/s]. The default is the segmentation's
-        static speed (``SegmentConfig.static_speed_m_s``, 0.05 m/s): whatever moves slower
-        is furniture to the segmentation, and to the tracker. A pole or a table's edge
-        that rays pass beside is dynamic in the first nod sweep, before static support can
-        judge it (nothing was hit there 2 s before), and a person standing still can be
-        too; their tracks stay tentative while their speed reads ~0. Measured, seeds 0-7,
-        every scene and the grid: false tracks mirrors / lifted 36 / 68 -> 31 / 60, the
-        furnished room's standing person never confirmed (before: a track in 11 of 16 runs),
-        no other mover's identity, estimates or convergence changed (the grid's 0.05 m/s
-        movers included); 17 held-out-style scenes 29 / 33 -> 21 / 29. 0: off.
+        *and* once its speed has reached this [m/s] - surely, by one standard deviation,
+        while its velocity is only two scans old (a person standing still read 0.05-0.11
+        +- 0.09 m/s then; people walking at 0.13-0.3 m/s 0.15-0.3 +- 0.06-0.16). The
+        default is the segmentation's static speed (``SegmentConfig.static_speed_m_s``,
+        0.05 m/s): whatever moves slower is furniture to the segmentation, and to the
+        tracker. A pole or a table's edge that rays pass beside is dynamic in the first nod
+        sweep, before static support can judge it (nothing was hit there 2 s before), and a
+        person standing still can be too; their tracks stay tentative while their speed
+        reads ~0. Measured, seeds 0-7, every scene and the grid: false tracks mirrors /
+        lifted 36 / 68 -> 27 / 53, the furnished room's standing person confirmed in no run
+        (before: 16 of 16), no other mover's identity, estimates or convergence changed (the grid's 0.05 m/s
+        movers included); 17 held-out-style scenes 29 / 33 -> 16 / 28. 0: off.
     entropy, sigma_m, voxel_m, max_points, voxel_max_points, warm_search_m_s, warm_voxel_grid
         The entropy refinement (:func:`refine_motion`); ``max_points`` (Rényi) and
         ``voxel_max_points`` cap the points one refinement uses (bounded work per scan).
@@ -1236,9 +1238,14 @@ class Tracker:
             self._update(tr, prior, c, None if mo is None else mo.velocity,
                          None if mo is None else self._velocity_noise(mo),
                          first_velocity=first)
-            if not tr.moved and tr.motion is not None \
-                    and float(np.hypot(*tr.x[2:])) >= cfg.confirm_speed_m_s:
-                tr.moved = True
+            if not tr.moved and tr.motion is not None:
+                # moving: at the confirm speed, surely so while the velocity is only two
+                # scans old (a person standing still read 0.05-0.11 +- 0.09 m/s then)
+                v = tr.x[2:]
+                sp = float(np.hypot(*v))
+                u = v / max(sp, 1e-9)
+                sd = float(np.sqrt(max(float(u @ tr.cov[2:, 2:] @ u), 0.0)))
+                tr.moved = sp - (sd if len(tr.scans) < 3 else 0.0) >= cfg.confirm_speed_m_s
             if tr.parent is not None:
                 parent = self._stitch(tr, scan.scan)
                 if parent is not None:
