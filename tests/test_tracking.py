@@ -225,7 +225,8 @@ def _blob(c, seed):
 
 
 def test_tracker_birth_confirmation_and_death():
-    cfg = TrackerConfig(max_missed=3)
+    # confirmed by the count of scans alone (confirm_speed_m_s: the next test)
+    cfg = TrackerConfig(max_missed=3, confirm_speed_m_s=0.0)
     trk = Tracker(cfg)
     s0 = trk.update(_Seg(0, [_blob([2, 0, 0.5], 0)]))
     assert len(s0) == 1 and not s0[0].confirmed  # one scan: tentative
@@ -240,6 +241,19 @@ def test_tracker_birth_confirmation_and_death():
         ended += [s for s in trk.update(_Seg(k, [])) if not s.alive]
     assert sorted(s.track_id for s in ended) == [1, 2]
     assert trk.states() == []
+
+
+def test_a_track_is_confirmed_once_it_surely_moves():
+    # 2 cm blobs, 0.13 m/s: the velocity from two scans reads 0.12 +- 0.13 m/s, not surely
+    # above the static speed (0.05 m/s); from three scans it is, whatever its sd. A blob
+    # that stays put is never confirmed.
+    trk = Tracker(TrackerConfig())
+    states = [trk.update(_Seg(k, [_blob([2, 0.013 * k, 0.5], k)]))[0] for k in range(4)]
+    assert [s.confirmed for s in states] == [False, False, True, True]
+    assert len({s.track_id for s in states}) == 1
+    still = Tracker(TrackerConfig())
+    states = [still.update(_Seg(k, [_blob([2, 0, 0.5], k)]))[0] for k in range(10)]
+    assert not any(s.confirmed for s in states) and states[-1].n_scans == 10
 
 
 def test_stonesoup_round_trip():
