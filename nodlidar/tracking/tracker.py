@@ -22,7 +22,9 @@ axis, :class:`~stonesoup.predictor.kalman.KalmanPredictor`,
 4. clusters left over within ``merge_m`` of a track's assigned cluster are pieces of it (an
    object seen through two mirror windows can come apart in one scan) and join it;
 5. the rest start *tentative* tracks (leftovers within ``merge_m`` of each other: one
-   track), *confirmed* once seen in ``confirm_scans`` scans; of two tracks updated in the
+   track), *confirmed* once seen in ``confirm_scans`` scans and surely moving at
+   ``confirm_speed_m_s`` or more (a pole, a table's edge or a person standing still,
+   dynamic before static support can judge them, stays tentative); of two tracks updated in the
    same scan within ``coalesce_m`` of each other (one object followed twice) the younger ends;
    a track unseen for more than ``max_missed`` scans ends (the default 25 outlasts the nod's
    blind interval, ~8 scans on the paper's ramp, and one person walking behind another:
@@ -35,6 +37,8 @@ axis, :class:`~stonesoup.predictor.kalman.KalmanPredictor`,
    where it was last seen) keeps its identity and starts its motion afresh. A moving
    track may also take a cluster that static support made consistent when that support is
    the tracks' own earlier points (``follow_supported_m_s``: its object back on its path).
+   A new object that only a lost moving track could be (it turned while unseen, beyond
+   every gate) continues that track once the two motions meet (``stitch_turned_m``).
 
 The measurement of a track in a scan is the ground-plane centroid of its points and, from
 the second scan on, the velocity from the entropy refinement (:func:`refine_motion`, eqs
