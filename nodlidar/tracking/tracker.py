@@ -166,8 +166,9 @@ class TrackerConfig:
         person standing still can be too; their tracks stay tentative while their speed
         reads ~0. Measured, seeds 0-7, every scene and the grid: false tracks mirrors /
         lifted 36 / 68 -> 27 / 53, the furnished room's standing person confirmed in no run
-        (before: 16 of 16), no other mover's identity, estimates or convergence changed (the grid's 0.05 m/s
-        movers included); 17 held-out-style scenes 29 / 33 -> 16 / 28. 0: off.
+        (before: 16 of 16), no other mover's identity, estimates or convergence changed
+        (the grid's 0.05 m/s movers included); 17 held-out-style scenes 29 / 33 ->
+        16 / 28. 0: off.
     entropy, sigma_m, voxel_m, max_points, voxel_max_points, warm_search_m_s, warm_voxel_grid
         The entropy refinement (:func:`refine_motion`); ``max_points`` (Rényi) and
         ``voxel_max_points`` cap the points one refinement uses (bounded work per scan).
@@ -263,14 +264,14 @@ class TrackerConfig:
         path from where it was last seen and the new track's path traced back come within
         this distance [m] of each other at one moment between the sightings (where and when
         it turned), at speeds within 30 % (or 0.1 m/s) plus twice the lost track's speed
-        uncertainty. The lost track then takes the new
-        one's scans, its motion starting afresh. A static ghost, or another mover that
-        appears where the lost one might have turned, does not move from that place and
-        moment. Measured, seeds 0-7, every scene and the grid (928 mover-runs): identity
-        switches mirrors / lifted 57 / 52 -> 4 / 5 (the grid's back-and-forth movers, three
-        people, the furnished room's walker), no other mover-run's identity or purity
-        changed; on 17 held-out-style scenes (crossings, side by side, a robot crossing a
-        person's path, a cart pushed past a table, two people pacing) 25 / 15 -> 3 / 8
+        uncertainty. The lost track then takes the new one's scans, its motion starting
+        afresh. A static ghost, or another mover that appears where the lost one might have
+        turned, does not move from that place and moment. Measured, seeds 0-7, every scene
+        and the grid (928 mover-runs): identity switches mirrors / lifted 57 / 52 -> 4 / 5
+        (the grid's back-and-forth movers, three people, the furnished room's walker), no
+        other mover-run's identity or purity changed; on 17 held-out-style scenes
+        (crossings, side by side, a robot crossing a person's path, a cart pushed past a
+        table, two people pacing) 25 / 15 -> 3 / 8
         (docs/tracking.md "A mover that turned unseen"). 0: off.
     turn_reach_m : float
         A track with a velocity, seen in one of the last ``turn_scans`` scans, may take a
@@ -856,7 +857,7 @@ class Tracker:
             got.append(b)
         return [b for b in births if b not in got]
 
-    def _stitch(self, tr: _Track, scan: int) -> _Track | None:
+    def _stitch(self, tr: _Track) -> _Track | None:
         """Whether ``tr``, a new track, continues the lost moving track ``tr.parent``
         (``TrackerConfig.stitch_turned_m``), tried at each of its first
         ``_STITCH_SCANS`` sightings with a velocity (a velocity from two scans can be far
@@ -1251,10 +1252,10 @@ class Tracker:
                 sd = float(np.sqrt(max(float(u @ tr.cov[2:, 2:] @ u), 0.0)))
                 tr.moved = sp - (sd if len(tr.scans) < 3 else 0.0) >= cfg.confirm_speed_m_s
             if tr.parent is not None:
-                parent = self._stitch(tr, scan.scan)
+                parent = self._stitch(tr)
                 if parent is not None:
-                    changed.append(replace(self._state(tr, alive=False),
-                                                       confirmed=False))
+                    # the new track ends, never confirmed: the lost one goes on
+                    changed.append(replace(self._state(tr, alive=False), confirmed=False))
                     tr = parent
             changed.append(self._state(tr))
         # new clusters within merge_m of each other are pieces of one new object
