@@ -125,6 +125,7 @@ def _study_scenes():
 
 def _study_run(case, config, seed, conv, conv_scan, switches=0, purity=1.0):
     return {"case": case, "config": config, "seed": seed, "false_tracks": 0,
+            "entropy": "renyi", "gospa_m": 0.2,
             "movers": [{"mover": "P", "conv": conv, "conv_scan": conv_scan, "first_scan": 2,
                         "id_switches": switches, "purity": purity, "final_err_v_m_s": 0.001,
                         "final_err_heading_deg": 0.1}]}

@@ -232,20 +232,8 @@ def test_batched_voxel_grid_equals_one_evaluation_per_velocity(bins_per_point):
 
 
 def _grid_scene(speed, heading_deg, length_m=3.0):
-    """The study's speed x heading scene: the paper cylinder on a back-and-forth leg of
-    ``length_m`` through (2.5, 0)."""
-    from nodlidar.sim.scene import scene_from_dict
-
-    u = np.array([np.cos(np.radians(heading_deg)), np.sin(np.radians(heading_deg))])
-    s = np.array([2.5, 0.0]) - length_m / 2 * u
-    return scene_from_dict({"name": f"v{speed}-h{heading_deg}",
-                            "room": {"size_m": [8.0, 6.0, 2.5], "center_m": [2.5, 0.0],
-                                     "ceiling": False},
-                            "mover": [{"radius_m": 0.18, "height_m": 1.0,
-                                       "trajectory": "back_and_forth",
-                                       "start_m": [float(s[0]), float(s[1]), 0.0],
-                                       "heading_deg": heading_deg, "length_m": length_m,
-                                       "speed_m_s": speed}]})
+    """The study's speed x heading scene (:func:`nodlidar.tracking.evaluate.grid_scene`)."""
+    return E.grid_scene(speed, heading_deg, length_m)
 
 
 @pytest.mark.slow

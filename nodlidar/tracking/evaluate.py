@@ -72,10 +72,28 @@ if TYPE_CHECKING:
 
 __all__ = ["V_TOL_M_S", "HEADING_TOL_DEG", "mover_truth", "OnlineResult", "run_online",
            "evaluate", "online_convergence", "false_tracks", "compare_mirrors",
-           "comparison_markdown"]
+           "comparison_markdown", "summary_rows", "grid_scene"]
 
 V_TOL_M_S = 0.01
 HEADING_TOL_DEG = 2.0
+
+
+def grid_scene(speed_m_s: float, heading_deg: float, length_m: float = 3.0) -> Scene:
+    """The issue's speed x heading grid: the paper's cylinder (r 0.18 m, 1 m tall) back
+    and forth on a leg of ``length_m`` [m] through (2.5, 0) at ``speed_m_s`` [m/s],
+    heading ``heading_deg`` [deg], in an 8 x 6 m room without a ceiling."""
+    from ..sim.scene import scene_from_dict
+
+    u = np.array([np.cos(np.radians(heading_deg)), np.sin(np.radians(heading_deg))])
+    s = np.array([2.5, 0.0]) - length_m / 2 * u
+    return scene_from_dict({"name": f"grid {speed_m_s:g} x {heading_deg:g}",
+                            "room": {"size_m": [8.0, 6.0, 2.5], "center_m": [2.5, 0.0],
+                                     "ceiling": False},
+                            "mover": [{"radius_m": 0.18, "height_m": 1.0,
+                                       "trajectory": "back_and_forth",
+                                       "start_m": [float(s[0]), float(s[1]), 0.0],
+                                       "heading_deg": heading_deg, "length_m": length_m,
+                                       "speed_m_s": speed_m_s}]})
 
 
 def mover_truth(scene: Scene, t_s: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
