@@ -82,6 +82,21 @@ def test_short_surfaces_keep_the_plain_margin():
     assert np.all(grazing_secant(scan, min_run_m=1.5) == 1.0)
 
 
+def test_a_wall_seen_in_a_short_piece_is_long_enough():
+    # the default shortest long surface (0.8 m) lies between the longest side of the movers
+    # the tracker is built for (0.6 m: the face above keeps the plain margin) and a wall
+    # seen in pieces, cut off by the lidar's range and by someone standing in front of it
+    # (a robot driving along a room saw 1.3 m of its side wall)
+    d = 0.8
+    for length, long in ((0.6, False), (1.0, True), (1.3, True)):
+        lo, hi = np.arctan(1.72 / d), np.arctan((1.72 + length) / d)
+        steps = np.arange(int(np.ceil(lo / STEP)), int(hi / STEP) + 1)
+        theta = steps * STEP
+        sec = grazing_secant(_scan(theta, d / np.cos(theta), steps=steps),
+                             min_run_m=SegmentConfig().grazing_min_run_m)
+        assert (np.median(sec) > 2.0) == long, (length, np.median(sec))
+
+
 def test_grazing_run_is_validated():
     with pytest.raises(ParameterError, match="grazing_min_run_m"):
         SegmentConfig(grazing_min_run_m=-1.0)
@@ -130,3 +145,32 @@ def test_an_empty_corridor_has_no_movers(design, mirrors, drive):
     if not mirrors:
         # lifted, the walls are the only thing the direct plane sees: none may move
         assert after == 0
+
+
+@pytest.mark.parametrize("mirrors", [False, True])
+def test_a_wall_seen_in_pieces_while_driving_does_not_move(design, mirrors):
+    # design/scenes/track-overtaking-robot.toml: the robot drives at 0.3 m/s down a room 3 m
+    # wide; a person overtakes it. From scan ~30 its side wall is seen at 60-75 deg in
+    # pieces of ~1.3 m, cut off by the lidar's range beyond and by the person in front;
+    # with the 1.5 m long-surface rule those pieces kept the plain margin, their rays
+    # carved the wall, and the wall became tracks (seed 1, lifted: 2 false tracks, at 2.4
+    # and 0.14 m/s). Measured, points on the static world classified dynamic over the 90
+    # scans, seeds 0 / 1: lifted 92 / 80 -> 17 / 19, with mirrors 110 / 121 -> 0 / 0.
+    # Asserted: at most a third; the person stays dynamic in the scans they are seen
+    from nodlidar.tracking.simdata import simulate_scans
+
+    def wall_and_person(scans, cfg):
+        """Dynamic points on the static world (truth 0) and on the person (1)."""
+        seg = OnlineSegmenter(cfg, design.lidar.range_sigma_m)
+        out = [(seg.update(s), s) for s in scans]
+        return (sum(int(np.sum(o.dynamic & (s.truth_id == 0))) for o, s in out),
+                sum(int(np.sum(o.dynamic & (s.truth_id == 1))) for o, s in out))
+
+    for seed in (0, 1):
+        scans = simulate_scans(design, 90, mirrors_deployed=mirrors,
+                               scene="track-overtaking-robot", seed=seed)
+        before, person_before = wall_and_person(scans, SegmentConfig(grazing_min_run_m=1.5))
+        after, person_after = wall_and_person(scans, SegmentConfig())
+        assert before >= 50 and person_before >= 500  # the failure; the person is seen
+        assert after <= before / 3, (seed, before, after)
+        assert person_after >= 0.95 * person_before, (seed, person_before, person_after)
