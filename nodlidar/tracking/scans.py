@@ -70,8 +70,8 @@ class ScanPoints:
 
     @property
     def t_mid_s(self) -> float:
-        """Mean beam time of the scan [s]."""
-        return float(np.mean(self.t_s))
+        """Mean beam time of the scan [s] (NaN for a scan without beams)."""
+        return float(np.mean(self.t_s)) if len(self.t_s) else float("nan")
 
 
 def sensor_velocity(pose, t_s: np.ndarray) -> np.ndarray | None:
