@@ -67,9 +67,9 @@ def test_an_edge_beside_a_surface_is_not_grazing():
 
 def test_short_surfaces_keep_the_plain_margin():
     # a 0.6 m face at 68 deg incidence (a box's side): grazing, but not a long surface, so
-    # with min_run_m (1.5 m here; the default 0.8 m, next test) its margin is the plain one; a moving face's
-    # evidence is the space just in front of it (measured: a 0.13 m/s box 2 m ahead is found
-    # scans later when it grows)
+    # with min_run_m (1.5 m here; the default 0.8 m: next test) its margin is the plain
+    # one; a moving face's evidence is the space just in front of it (measured: a 0.13 m/s
+    # box 2 m ahead is found scans later when it grows)
     # the face: the line at 0.8 m from the sensor (normal at bearing 0) from 1.72 to 2.32 m
     # along it: 0.6 m long, seen at 65-71 deg, 1.9-2.5 m away
     d = 0.8
