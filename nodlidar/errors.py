@@ -45,6 +45,11 @@ class ParameterError(NodlidarError, ValueError):
         self.allowed = allowed
         super().__init__(f"{field} = {value!r} is invalid; allowed: {allowed}")
 
+    def __reduce__(self):
+        # the constructor's arguments, not the message: a worker process's error reaches
+        # the parent whole (pickled by multiprocessing), not as a TypeError of the unpickler
+        return type(self), (self.field, self.value, self.allowed)
+
 
 class InputFileError(NodlidarError, ValueError):
     """An input file cannot be read as what it should be: missing, not a regular file (a
@@ -69,6 +74,9 @@ class UnknownKeyError(DesignFileError, ParameterError):
         self.value = value
         self.allowed = allowed
         Exception.__init__(self, message)
+
+    def __reduce__(self):
+        return type(self), (self.args[0], self.field, self.value, self.allowed)
 
 
 class InfeasibleDesignError(NodlidarError):

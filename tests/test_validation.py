@@ -453,3 +453,16 @@ def test_design_name_made_in_code_cannot_escape_an_output_folder(bad):
     spec = load_design(PAPER_DESIGN)
     with pytest.raises(ParameterError, match="name"):
         dataclasses.replace(spec, name=bad)
+
+
+def test_parameter_errors_survive_pickling():
+    # a worker process's error reaches the parent through pickle (multiprocessing): before,
+    # unpickling called ParameterError(message) and died with a TypeError, and the harness
+    # lost the error and the run (benchmarks/study_scenes.py: "BrokenProcessPool")
+    import pickle
+
+    for e in (ParameterError("scene.file", "x.toml", "an existing file"),
+              UnknownKeyError("unknown key foo in x.toml", "foo", "foo", "bar, baz")):
+        back = pickle.loads(pickle.dumps(e))
+        assert type(back) is type(e) and str(back) == str(e)
+        assert (back.field, back.value, back.allowed) == (e.field, e.value, e.allowed)
