@@ -156,7 +156,9 @@ def test_a_wall_seen_in_pieces_while_driving_does_not_move(design, mirrors):
     # carved the wall, and the wall became tracks (seed 1, lifted: 2 false tracks, at 2.4
     # and 0.14 m/s). Measured, points on the static world classified dynamic over the 90
     # scans, seeds 0 / 1: lifted 92 / 80 -> 17 / 19, with mirrors 110 / 121 -> 0 / 0.
-    # Asserted: at most a third; the person stays dynamic in the scans they are seen
+    # Asserted: at most a third; the person stays dynamic in the scans they are seen. The
+    # failure is the segmentation of then (no scan-line links either: they removed a few
+    # of those points too, 92 -> 46 in seed 0 lifted with the 1.5 m rule)
     from nodlidar.tracking.simdata import simulate_scans
 
     def wall_and_person(scans, cfg):
@@ -169,7 +171,8 @@ def test_a_wall_seen_in_pieces_while_driving_does_not_move(design, mirrors):
     for seed in (0, 1):
         scans = simulate_scans(design, 90, mirrors_deployed=mirrors,
                                scene="track-overtaking-robot", seed=seed)
-        before, person_before = wall_and_person(scans, SegmentConfig(grazing_min_run_m=1.5))
+        before, person_before = wall_and_person(scans, SegmentConfig(grazing_min_run_m=1.5,
+                                                                     scan_line_sigmas=0.0))
         after, person_after = wall_and_person(scans, SegmentConfig())
         assert before >= 50 and person_before >= 500  # the failure; the person is seen
         assert after <= before / 3, (seed, before, after)
