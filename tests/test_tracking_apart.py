@@ -216,7 +216,7 @@ def test_scan_line_sigmas_is_checked():
 
 def test_a_long_cart_keeps_one_track(scene_runs):
     # design/scenes/track-long-cart.toml: the noise broke the cart's 1.2 m face into two to
-    # five clusters, two tracks followed its two ends at its own velocity, and the identity
+    # four clusters, two tracks followed its two ends at its own velocity, and the identity
     # switched between them scan by scan (lifted, seeds 0 / 1: 16 / 17 switches; with
     # mirrors no seed converged in 90 scans). Now one track, converged (measured: lifted at
     # scan 2 / 2 with the cart, mirrors 4 / 5)

@@ -155,7 +155,7 @@ class SegmentConfig:
         :func:`scan_line_links`, :func:`cluster_points`'s ``links``). The range noise moves
         each point along its ray, and on a surface seen obliquely it opens steps between
         neighbours larger than the linking distance: a 1.2 m cart's face came apart into
-        two to five clusters, two tracks followed its two ends and its identity switched
+        two to four clusters, two tracks followed its two ends and its identity switched
         between them scan by scan, and static surfaces broken into small pieces kept
         enough inconsistent points to pass for movers (docs/tracking.md "Tenth session").
         0 turns it off.
@@ -340,7 +340,7 @@ def scan_line_links(scan: ScanPoints, idx: np.ndarray, eps_m: np.ndarray | float
     linking distance alone (4 beam spacings, 5-6 cm at 2.3 m) is below the steps the
     URG's range noise (1 % of the range) opens between neighbours on a face seen
     obliquely - 0.1 m now and then, as the noise moves each point along its own ray: a
-    1.2 m cart's face came apart into two to five clusters, each a track, and static
+    1.2 m cart's face came apart into two to four clusters, two of them tracks, and static
     surfaces broken by noise into small pieces kept enough inconsistent points to pass for
     movers (docs/tracking.md "Tenth session"). Only consecutive beams are linked: the
     allowance does not reach across a ray that went between two objects (its end point
