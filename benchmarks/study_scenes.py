@@ -20,7 +20,7 @@ seeds, false tracks. ``--summary`` only prints the summary of ``OUT``.
 
 Usage::
 
-    python benchmarks/study_scenes.py OUT.jsonl [--seeds 8] [--jobs 2] [--only SUBSTR]
+    python benchmarks/study_scenes.py OUT.jsonl [--seeds 8] [--jobs 2] [--only REGEX]
         [--extra FILE[@SCANS] ...] [--set tracker.FIELD=VALUE ...] [--summary]
 
 ``--set`` measures an option against the defaults (one OUT file per setting: the runs in
@@ -190,7 +190,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("out", type=Path)
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--only", default=None, help="cases whose name contains this")
+    ap.add_argument("--only", default=None,
+                    help="cases whose name matches this regular expression (re.search: a "
+                         "plain substring as before; '^x-' for names that start with x-)")
     ap.add_argument("--extra", nargs="*", default=[])
     ap.add_argument("--summary", action="store_true", help="only summarise OUT")
     ap.add_argument("--set", nargs="*", default=[], metavar="tracker.FIELD=VALUE",
@@ -211,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
             done.add((r["case"], r["seed"], r["config"]))
     if not args.summary:
         todo = [(c, src, n, seed, dep) for c, src, n in cases(args.extra)
-                if args.only is None or args.only in c
+                if args.only is None or re.search(args.only, c)
                 for seed in range(args.seeds) for dep in (True, False)
                 if (c, seed, "mirrors" if dep else "lifted") not in done]
         print(f"{len(todo)} runs ({len(done)} already in {args.out})", file=sys.stderr)
@@ -224,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"  {k}/{len(futs)}", file=sys.stderr)
     runs = [json.loads(line) for line in args.out.read_text().splitlines()]
     if args.only:
-        runs = [r for r in runs if args.only in r["case"]]
+        runs = [r for r in runs if re.search(args.only, r["case"])]
     print_summary(summary(runs))
     return 0
 
