@@ -35,6 +35,7 @@ from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap, carve_samples, unique_k
 
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch",
            "OnlineSegmenter", "window_cut", "cut_edges", "grazing_secant", "seen_apart",
+           "hidden_between",
            "seen_through", "behind_or_through"]
 
 
@@ -727,6 +728,56 @@ def _occluded_between(scan: ScanPoints, a: np.ndarray, b: np.ndarray, jump_m: fl
         # beyond a box's corner
         far = np.abs(dr[k + 1:k + 4] if dr[k] > 0 else dr[max(k - 3, 0):k])
         if abs(dr[k]) > jump_m and len(far) and abs(dr[k]) > ratio * float(np.median(far)):
+            return True
+    return False
+
+
+def hidden_between(scan: ScanPoints, a: np.ndarray, b: np.ndarray, jump_m: float = 0.15,
+                   max_gap_m: float = 0.6) -> bool:
+    """Whether two clusters may be one surface continuing behind a nearer object: in a
+    window that sees both one after the other, every beam between the first's last and the
+    second's first ended ``jump_m`` [m] or more in front of both (an occluder, and nothing
+    else, hides the gap), and in the top view those two end points are within
+    ``max_gap_m`` [m].
+
+    The converse of :func:`seen_apart`: there the scan saw free space, or one jump, between
+    the two; here it saw nothing of the gap at all. A box walking behind a person's shadow
+    is cut into two pieces 0.4-0.45 m apart (``design/scenes/track-side-by-side-box.toml``),
+    beyond ``TrackerConfig.merge_m``; nothing the scan saw says they are two objects.
+
+    Parameters
+    ----------
+    scan : ScanPoints
+    a, b : (k,) int
+        Beam indices of the two clusters in ``scan``.
+    jump_m : float
+        How far in front of both ends every beam between them must have ended [m] (more
+        than the range noise).
+    max_gap_m : float
+        Largest top-view distance [m] between the two ends across the hidden gap.
+
+    Returns
+    -------
+    bool
+    """
+    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
+    steps, mirror, r = scan.steps, scan.mirror, scan.range_m
+    for m in np.intersect1d(mirror[a], mirror[b]):
+        sa, sb = np.sort(steps[a][mirror[a] == m]), np.sort(steps[b][mirror[b] == m])
+        if sa[-1] < sb[0]:
+            lo, hi = sa[-1], sb[0]
+        elif sb[-1] < sa[0]:
+            lo, hi = sb[-1], sa[0]
+        else:
+            continue  # interleaved in this window
+        w = np.flatnonzero((mirror == m) & (steps >= lo) & (steps <= hi))
+        w = w[np.argsort(steps[w])]
+        if len(w) < 3 or np.any(np.diff(steps[w]) != 1) or not np.all(np.isfinite(r[w])):
+            continue  # adjacent, a gap in the window, or a beam through to nothing
+        ends = w[[0, -1]]
+        if float(np.max(r[w[1:-1]])) > float(np.min(r[ends])) - jump_m:
+            continue  # a beam between them ended near or beyond them: not hidden
+        if float(np.hypot(*(scan.points[ends[0], :2] - scan.points[ends[1], :2]))) <= max_gap_m:
             return True
     return False
 
