@@ -1228,9 +1228,7 @@ class Tracker:
                 continue
             near = [(float(np.hypot(*(cents[b] - cents[bb]))), a, bb)
                     for bb, a in assign.items()]
-            near = [x[:2] for x in near if (x[0] <= cfg.merge_m and not (
-                cfg.merge_seen_apart and seen_apart(scan, objs[b], objs[x[2]]))) or (
-                x[0] <= cfg.merge_hidden_m and hidden_between(scan, objs[b], objs[x[2]]))]
+            near = [x[:2] for x in near if self._pieces(scan, objs[b], objs[x[2]], x[0])]
             if near:
                 members[min(near)[1]].append(b)
             else:
@@ -1331,6 +1329,14 @@ class Tracker:
                 self.ended.append(tr)
                 changed.append(self._state(tr, alive=False))
         return changed
+
+    def _pieces(self, scan: ScanPoints, a: np.ndarray, b: np.ndarray, dist_m: float) -> bool:
+        """Whether clusters ``a`` and ``b`` (beam indices), centroids ``dist_m`` [m] apart,
+        are pieces of one object: within ``merge_m`` and not seen apart, or within
+        ``merge_hidden_m`` with the gap between them hidden by a nearer object."""
+        cfg = self.config
+        return (dist_m <= cfg.merge_m and not (cfg.merge_seen_apart and seen_apart(scan, a, b))) \
+            or (dist_m <= cfg.merge_hidden_m and hidden_between(scan, a, b))
 
     def _path_keys(self, t_s: float) -> np.ndarray:
         """Voxel keys of the points tracks took ``static_age_s`` or more before ``t_s`` [s]
