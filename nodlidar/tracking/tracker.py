@@ -136,11 +136,12 @@ class TrackerConfig:
         ... and only when the two together span no more than this [m] in the top view. Two
         people walking side by side behind a third are pieces on both sides of the third's
         shadow too, and span 0.78 m or more (centres 0.42 m apart or more, radius 0.18 m);
-        measured with three people in step (held-out-style ``y-three2``, seeds 0-7) the
-        merge without this bound took the hidden person's pieces into the other's track:
-        purity 1.0 -> 0.09 in 4 lifted seeds, 2 more switches. The 0.5 m box spans 0.5 m;
-        a box or cart wider than 0.65 m behind a person keeps two tracks
-        (``y-splitbox``: 0.8 m).
+        measured (``design/scenes/track-two-behind-one.toml``, seeds 0-7), the merge
+        without this bound took the hidden person's pieces into the other's track: their
+        longest track's purity fell from 1.0 to 0.09-0.76 in 5 of 8 lifted seeds, and
+        identity switches went 6 / 0 -> 6 / 2 (mirrors / lifted). The 0.5 m box spans
+        0.5 m; a box or cart wider than 0.65 m behind a person keeps two tracks
+        (``benchmarks/heldout/y-splitbox.toml``: 0.8 m).
     hold_seen_apart : bool
         A track does not take a cluster when its predicted position lies on another,
         nearer cluster of the scan that is not dynamic and that the scan saw apart from the
