@@ -197,6 +197,7 @@ SLOW_FIXTURES: dict[str, tuple[str, ...]] = {
     "test_tracking_gaps.py": ("scene_runs",),
     "test_tracking_occluded.py": ("scene_runs",),
     "test_tracking_cut.py": ("scene_runs",),
+    "test_tracking_furniture.py": ("scene_runs",),
 }
 
 #: Files every test of which is slow by construction (a module-level ``cad`` mark, and no

@@ -13,6 +13,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from nodlidar.cli import main
+from nodlidar.errors import ParameterError
 from nodlidar.tracking.motion import (
     MotionEstimate,
     RenyiCost,
@@ -254,6 +255,20 @@ def test_a_track_is_confirmed_once_it_surely_moves():
     still = Tracker(TrackerConfig())
     states = [still.update(_Seg(k, [_blob([2, 0, 0.5], k)]))[0] for k in range(10)]
     assert not any(s.confirmed for s in states) and states[-1].n_scans == 10
+
+
+def test_confirm_sure_scans_is_how_long_the_speed_must_be_sure():
+    # the blobs above: the two-scan velocity (0.12 +- 0.13 m/s) confirms when its sd is not
+    # asked for (0, or 2: "younger than two scans" never happens), not with the default
+    confirmed = {}
+    for k_sure in (0, 2, 3):
+        trk = Tracker(TrackerConfig(confirm_sure_scans=k_sure))
+        confirmed[k_sure] = [trk.update(_Seg(k, [_blob([2, 0.013 * k, 0.5], k)]))[0].confirmed
+                             for k in range(4)]
+    assert confirmed == {0: [False, True, True, True], 2: [False, True, True, True],
+                         3: [False, False, True, True]}
+    with pytest.raises(ParameterError, match="confirm_sure_scans = -1 .*>= 0"):
+        TrackerConfig(confirm_sure_scans=-1)
 
 
 def test_stonesoup_round_trip():
