@@ -293,7 +293,7 @@ def test_a_box_cut_by_a_persons_shadow_keeps_one_track(scene_runs):
     """``design/scenes/track-side-by-side-box.toml``, mirrors: a box walking behind a person
     (as the sensor sees it) is cut by the person's shadow into two pieces 0.4-0.45 m apart,
     beyond ``merge_m``; the trailing piece got a track of its own and the identity switched
-    between the two (measured, 80 scans, seeds 0-7: 4 3 2 5 3 2 3 2 switches; lifted
+    between the two (measured, 80 scans, seeds 0-7: 4 2 3 5 3 2 3 2 switches; lifted
     sees more of the box: none). Across a gap the scan saw nothing of
     (``TrackerConfig.merge_hidden_m``): one track, no switch, in every seed."""
     for seed in (0, 1):
