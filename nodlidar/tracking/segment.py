@@ -20,7 +20,7 @@ far only).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import cast
 
@@ -687,6 +687,30 @@ def seen_apart(scan: ScanPoints, a: np.ndarray, b: np.ndarray, beyond_m: float =
     return bool(hit.any()) or _occluded_between(scan, a, b)
 
 
+def _scan_line_between(scan: ScanPoints, a: np.ndarray, b: np.ndarray,
+                       inside: int = 0) -> Iterator[np.ndarray]:
+    """For each window that sees clusters ``a`` and ``b`` (beam indices) one after the other
+    along its scan line (not interleaved): the window's beams from the first cluster's last
+    beam to the second's first, with up to ``inside`` more beams inside each, in step order.
+    Only when those are consecutive steps that all returned (a gap in the window, or a beam
+    through to nothing, is no scan line between the two)."""
+    steps, mirror, r = scan.steps, scan.mirror, scan.range_m
+    for m in np.intersect1d(mirror[a], mirror[b]):
+        sa, sb = np.sort(steps[a][mirror[a] == m]), np.sort(steps[b][mirror[b] == m])
+        if sa[-1] < sb[0]:
+            first, second = sa, sb
+        elif sb[-1] < sa[0]:
+            first, second = sb, sa
+        else:
+            continue  # interleaved in this window
+        lo, hi = max(first[-1] - inside, first[0]), min(second[0] + inside, second[-1])
+        w = np.flatnonzero((mirror == m) & (steps >= lo) & (steps <= hi))
+        w = w[np.argsort(steps[w])]
+        if len(w) < 2 or np.any(np.diff(steps[w]) != 1) or not np.all(np.isfinite(r[w])):
+            continue
+        yield w
+
+
 def _occluded_between(scan: ScanPoints, a: np.ndarray, b: np.ndarray, jump_m: float = 0.15,
                       ratio: float = 3.0) -> bool:
     """Whether, in a window that sees both clusters one after the other, the scan line
@@ -699,26 +723,14 @@ def _occluded_between(scan: ScanPoints, a: np.ndarray, b: np.ndarray, jump_m: fl
     the URG's range noise makes single steps of 0.1 m at 2.3 m). It must be the only step
     above ``jump_m`` there: two are a third object in between (a pole in front of one
     person, whose two sides are then two clusters of that person)."""
-    steps, mirror, r = scan.steps, scan.mirror, scan.range_m
-    for m in np.intersect1d(mirror[a], mirror[b]):
-        sa, sb = np.sort(steps[a][mirror[a] == m]), np.sort(steps[b][mirror[b] == m])
-        if sa[-1] < sb[0]:
-            first, second = sa, sb
-        elif sb[-1] < sa[0]:
-            first, second = sb, sa
-        else:
-            continue  # interleaved in this window
-        # the window's beams from the first cluster's last to the second's first, with up
-        # to three beams inside each (their surfaces' own steps) - and none beyond them: a
-        # cluster with fewer beams here must not lend the jump at its outer edge (to the
-        # background) to the test between the two (measured: a box's far corner, two beams
-        # at grazing incidence next to its face, was "seen apart" from the face by the
-        # corner's own silhouette jump, and a second track took the box)
-        lo, hi = max(first[-1] - 3, first[0]), min(second[0] + 3, second[-1])
-        w = np.flatnonzero((mirror == m) & (steps >= lo) & (steps <= hi))
-        w = w[np.argsort(steps[w])]
-        if len(w) < 2 or np.any(np.diff(steps[w]) != 1) or not np.all(np.isfinite(r[w])):
-            continue  # a gap in the window or a beam with no return: the ray test's case
+    r = scan.range_m
+    # up to three beams inside each cluster (their surfaces' own steps) - and none beyond
+    # them: a cluster with fewer beams here must not lend the jump at its outer edge (to
+    # the background) to the test between the two (measured: a box's far corner, two beams
+    # at grazing incidence next to its face, was "seen apart" from the face by the corner's
+    # own silhouette jump, and a second track took the box). A gap in the window or a beam
+    # with no return is the ray test's case
+    for w in _scan_line_between(scan, a, b, inside=3):
         dr = np.diff(r[w])
         if int(np.sum(np.abs(dr) > jump_m)) != 1:
             continue  # a third object between them (a pole in front of one person), or none
@@ -761,19 +773,10 @@ def hidden_between(scan: ScanPoints, a: np.ndarray, b: np.ndarray, jump_m: float
     bool
     """
     a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
-    steps, mirror, r = scan.steps, scan.mirror, scan.range_m
-    for m in np.intersect1d(mirror[a], mirror[b]):
-        sa, sb = np.sort(steps[a][mirror[a] == m]), np.sort(steps[b][mirror[b] == m])
-        if sa[-1] < sb[0]:
-            lo, hi = sa[-1], sb[0]
-        elif sb[-1] < sa[0]:
-            lo, hi = sb[-1], sa[0]
-        else:
-            continue  # interleaved in this window
-        w = np.flatnonzero((mirror == m) & (steps >= lo) & (steps <= hi))
-        w = w[np.argsort(steps[w])]
-        if len(w) < 3 or np.any(np.diff(steps[w]) != 1) or not np.all(np.isfinite(r[w])):
-            continue  # adjacent, a gap in the window, or a beam through to nothing
+    r = scan.range_m
+    for w in _scan_line_between(scan, a, b):
+        if len(w) < 3:
+            continue  # adjacent on the scan line: nothing between them to hide
         ends = w[[0, -1]]
         if float(np.max(r[w[1:-1]])) > float(np.min(r[ends])) - jump_m:
             continue  # a beam between them ended near or beyond them: not hidden
