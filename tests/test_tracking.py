@@ -271,6 +271,49 @@ def test_confirm_sure_scans_is_how_long_the_speed_must_be_sure():
         TrackerConfig(confirm_sure_scans=-1)
 
 
+def _labelled(k, blobs, dynamic, inconsistent, supported=None):
+    """A real :class:`Segmented` of point blobs: blob ``j`` is cluster ``j``, dynamic when
+    ``dynamic[j]``, its first ``inconsistent[j]`` points inconsistent."""
+    from nodlidar.tracking.segment import Segmented
+
+    pts = np.vstack(blobs)
+    n = len(pts)
+    lab = np.concatenate([np.full(len(b), j) for j, b in enumerate(blobs)])
+    inc = np.concatenate([np.arange(len(b)) < m for b, m in zip(blobs, inconsistent)])
+    sup = None if supported is None else np.asarray(supported)[lab]
+    scan = ScanPoints(k, np.arange(n), np.full(n, k * 0.1), np.full(n, -1), np.ones(n), pts,
+                      np.zeros((n, 3)), pts / np.linalg.norm(pts, axis=1, keepdims=True),
+                      np.zeros(n))
+    return Segmented(scan, np.zeros(n, bool), inc, lab, np.asarray(dynamic)[lab], sup)
+
+
+def test_a_track_follows_its_object_on_weak_evidence_only_where_it_is_unambiguous():
+    """``follow_inconsistent_fraction``: a track that took nothing may take the nearest
+    cluster that is not dynamic but has ``min_inconsistent_points`` inconsistent points and
+    this fraction of its points - not a cluster wider than its object (two people as one
+    cluster), not one farther than another cluster, not one static support judged."""
+    def n_scans(second, frac=0.05):
+        trk = Tracker(TrackerConfig(follow_inconsistent_fraction=frac))
+        trk.update(_labelled(0, [_blob([2, 0, 0.5], 0)], [True], [20]))
+        return trk.update(_labelled(1, *second))
+
+    ok = ([_blob([2.03, 0, 0.5], 1)], [False], [4])  # 4 of 20: 20 %, below the birth's
+    taken = n_scans(ok)
+    assert len(taken) == 1 and taken[0].n_scans == 2
+    assert n_scans(ok, frac=1.0) == []  # off
+    assert n_scans(ok, frac=0.25) == []  # 20 % < 25 %
+    assert n_scans(([_blob([2.03, 0, 0.5], 1)], [False], [2])) == []  # < 3 points
+    # two people in one cluster (0.42 m apart), wider than the track's object
+    two = np.vstack([_blob([2.03, 0, 0.5], 1), _blob([2.03, 0.42, 0.5], 2)])
+    assert n_scans(([two], [False], [8])) == []
+    # another cluster, with no evidence, is nearer to the track: that is its object
+    assert n_scans(([_blob([2.0, 0, 0.5], 1), _blob([2.0, 0.35, 0.5], 2)], [False, False],
+                    [0, 8])) == []
+    assert n_scans(([_blob([2.03, 0, 0.5], 1)], [False], [4], [True])) == []  # supported
+    with pytest.raises(ParameterError, match="follow_inconsistent_fraction = 1.5 .*0..1"):
+        TrackerConfig(follow_inconsistent_fraction=1.5)
+
+
 def test_stonesoup_round_trip():
     # stonesoup is a test dependency (pyproject): imported, not skipped when missing
     from nodlidar.tracking.stonesoup import from_stonesoup, to_stonesoup
@@ -736,6 +779,37 @@ def _passing_cylinder(design, dep, sigma_m=0.0):
         ray = s.ray_dir[i, :2] / np.linalg.norm(s.ray_dir[i, :2], axis=1)[:, None]
         X.append(1.0 / np.maximum(np.abs(np.sum(normal * ray, axis=1)), 0.25))
     return tuple(np.concatenate(a) for a in (P, T, W, X))
+
+
+def test_smoothing_along_the_scan_line_moves_points_along_their_rays_only():
+    """``smooth_along_scan``: a wall 2 m ahead seen by 200 beams 0.36 deg apart with 1 cm
+    range noise; a box face 0.3 m nearer in beams 80-119. Each point stays on its ray; the
+    noise shrinks (a 5-beam line fit: 1/sqrt(5) of it in the middle of a run, more at its
+    ends, so about 0.5-0.6 over the whole); the fit is a straight line, so on the wall it is
+    exact but for the bend of range against beam over 5 beams (r'' = 5 m/rad^2 at 36 deg
+    off axis: 0.2 mm; measured at most 0.16 mm); the face and the wall are not mixed (jump
+    0.3 m > 0.05 m per beam)."""
+    from nodlidar.tracking.motion import smooth_along_scan
+
+    n = 200
+    th = np.radians(0.36) * (np.arange(n) - n / 2)
+    d = np.stack([np.cos(th), np.sin(th), np.zeros(n)], axis=1)
+    depth = np.where((np.arange(n) >= 80) & (np.arange(n) < 120), 1.7, 2.0)
+    r_true = depth / np.cos(th)
+    steps, mirror = np.arange(n), np.full(n, -1)
+    exact = smooth_along_scan(r_true[:, None] * d, d, r_true, steps, mirror)
+    assert_allclose(exact, r_true[:, None] * d, atol=3e-4)  # the bend over 5 beams
+    r = r_true + np.random.default_rng(3).normal(0, 0.01, n)
+    out = smooth_along_scan(r[:, None] * d, d, r, steps, mirror)
+    along = np.einsum("ij,ij->i", out, d)
+    assert_allclose(out, along[:, None] * d, atol=1e-12)  # on its own ray
+    ratio = np.std(along - r_true) / np.std(r - r_true)
+    assert 0.4 < ratio < 0.65, ratio
+    # two windows: a beam's neighbours are its own window's only
+    two = smooth_along_scan(r[:, None] * d, d, r, steps // 2, steps % 2)
+    assert not np.allclose(two, out)
+    with pytest.raises(ParameterError, match="smooth_scan_beams = -1"):
+        TrackerConfig(smooth_scan_beams=-1)
 
 
 @pytest.mark.parametrize("dep", [False, True], ids=["lifted", "mirrors"])

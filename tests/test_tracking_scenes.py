@@ -614,9 +614,12 @@ def test_reacquisition_keeps_the_early_side_by_side_track(design, speed, births)
     from nodlidar.tracking.segment import SegmentConfig
     from nodlidar.tracking.tracker import TrackerConfig
 
+    # follow_inconsistent_fraction off: with it the person's track takes their clusters at
+    # scan 7 on (few inconsistent points) and there is no gap to bridge (since 2026-12-06)
     res = E.run_online(design, "track-side-by-side", 30, seed=1,
                        tracker=TrackerConfig(reacquire_speed_m_s=speed,
-                                             reacquire_births_m_s=births),
+                                             reacquire_births_m_s=births,
+                                             follow_inconsistent_fraction=1.0),
                        segment=SegmentConfig(fraction_per_window=True))
     right = E.evaluate(res)["movers"][1]
     recs = sorted((r for r in res.records if r["counts"].get(2, 0)), key=lambda r: r["scan"])

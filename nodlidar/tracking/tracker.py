@@ -65,7 +65,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from ..errors import require
-from .motion import MotionEstimate, coarse_motion, incidence_weights, refine_motion
+from .motion import MotionEstimate, coarse_motion, incidence_weights, refine_motion, smooth_along_scan
 from .segment import behind_or_through, cut_edges, hidden_between, seen_apart, seen_through
 from .voxels import unique_keys
 
@@ -162,6 +162,25 @@ class TrackerConfig:
         converged with mirrors 1/8 -> 8/8 seeds (8 identity switches -> 0); two people
         walking away side by side, lifted, 2/8 -> 8/8 (6 -> 0) (docs/tracking.md "Walking
         straight away"). 0: off.
+    follow_inconsistent_fraction : float
+        A track that took no cluster in a scan may take the cluster nearest its prediction
+        that is not dynamic but has ``min_inconsistent_points`` inconsistent points and at
+        least this fraction of its points inconsistent (a birth needs
+        ``SegmentConfig.min_inconsistent_fraction``, 15 %): continuing an object needs less
+        evidence than starting one. The cluster must be within the track's gates, no static
+        support may have judged it, and it may be at most 0.1 m wider (largest distance of a
+        point from the centroid) than the track's last cluster: two people side by side seen
+        as one cluster are not one of them. The nod shows an object at a new height each
+        scan; where rays had not passed before, only a few of its points are inconsistent
+        (a person crossing at 2 m, mirrors deployed: 76 points, dynamic once, then 8 of 73,
+        3 of 70, 8 of 67 - its young track waited 21 scans for the next dynamic scan).
+        1: off.
+    smooth_scan_beams : int
+        Each scan's points of a track move along their rays to a straight-line fit of range
+        against beam step over this many beams either side
+        (:func:`~nodlidar.tracking.motion.smooth_along_scan`) before the entropy sees them:
+        less range noise, a narrower effective kernel, less of the slow reading of fast
+        movers. 0: off.
     occluded_scans : int
         A track unseen for more than ``max_missed`` scans lives on by one scan for each scan
         since it was last seen in which its predicted place was hidden behind another
@@ -410,6 +429,8 @@ class TrackerConfig:
     merge_hidden_extent_m: float = 0.65
     hold_seen_apart: bool = True
     follow_seen_through_m: float = 1.5
+    follow_inconsistent_fraction: float = 0.0
+    smooth_scan_beams: int = 0
     confirm_scans: int = 2
     confirm_speed_m_s: float = 0.05
     confirm_sure_scans: int = 3
@@ -477,6 +498,10 @@ class TrackerConfig:
         require(self.gate_chi2 > 0, "gate_chi2", self.gate_chi2, "> 0")
         require(self.follow_seen_through_m >= 0, "follow_seen_through_m",
                 self.follow_seen_through_m, ">= 0 m (0: off)")
+        require(0 <= self.follow_inconsistent_fraction <= 1, "follow_inconsistent_fraction",
+                self.follow_inconsistent_fraction, "0..1 (1: off)")
+        require(self.smooth_scan_beams >= 0, "smooth_scan_beams", self.smooth_scan_beams,
+                ">= 0 beams (0: off)")
         require(self.merge_m >= 0, "merge_m", self.merge_m, ">= 0 m")
         require(self.merge_hidden_extent_m >= 0, "merge_hidden_extent_m",
                 self.merge_hidden_extent_m, ">= 0 m")
@@ -557,6 +582,7 @@ _TAKEN_SCANS = 60  # the online segmenter's window: static support older than it
 _BIRTH_SIGMA_V_M_S = 0.5  # velocity sigma of a new track: a person walks at most ~1.5 m/s (3 sigma)
 _SURE_SIGMAS = 3.0  # a track surely moves when its speed is this many sigmas from zero
 _HOLD_M = 0.15  # hold_seen_apart: a cluster this near a track's prediction holds it
+_WEAK_WIDER_M = 0.1  # follow_inconsistent_fraction: a cluster at most this wider than the last
 _OBJECT_M = 0.5  # follow_seen_through: an object's points lie within this of its centroid
 _COLUMN_M = 0.2  # occluded_scans: a person's radius, about a track's predicted position
 _COLUMN_MARGIN_M = 0.15  # occluded_scans: a beam ends this far before the column, or beyond
@@ -756,18 +782,25 @@ class Tracker:
                     cost[a, b] = big
                     turn_priors.pop((a, b), None)
 
-    def _seen_through(self, seg: Segmented, ids: list, assign: dict, objs: list, cents: list,
-                      times: list, priors: dict) -> None:
-        """Give each moving track that took nothing in this scan the cluster, not dynamic,
-        that the scan sees through its earlier voxels onto (``follow_seen_through_m``;
-        appended to ``objs``, ``cents``, ``times``, ``assign`` and ``priors`` in place).
-        Of several candidate pairs the nearest to the prediction (chi-square) goes first."""
+    def _follow_unseen(self, seg: Segmented, ids: list, assign: dict, objs: list,
+                       cents: list, times: list, priors: dict) -> None:
+        """Give each track that took nothing in this scan a cluster, not dynamic, that shows
+        its object (appended to ``objs``, ``cents``, ``times``, ``assign`` and ``priors`` in
+        place): one the scan sees through a moving track's earlier voxels onto
+        (``follow_seen_through_m``), or one with some inconsistent points, fewer than a
+        birth needs (``follow_inconsistent_fraction``). The cluster is object-sized and within
+        the track's gates; of several candidate pairs the nearest to the prediction
+        (chi-square) goes first."""
         from .segment import SegmentConfig
 
         cfg = self.config
         scan, lab = seg.scan, seg.cluster
+        through = cfg.follow_seen_through_m > 0
+        inc = getattr(seg, "inconsistent", None)  # duck-typed segmentations may lack it
+        weak = cfg.follow_inconsistent_fraction < 1.0 and inc is not None
         done = set(assign.values())
-        free = [a for a, tid in enumerate(ids) if a not in done and self.tracks[tid].motion is not None]
+        free = [a for a, tid in enumerate(ids) if a not in done
+                and (weak or self.tracks[tid].motion is not None)]
         if not free or lab.max(initial=-1) < 0:
             return
         used = np.zeros(int(lab.max()) + 1, bool)
@@ -786,37 +819,64 @@ class Tracker:
                          np.bincount(lab[ci], xy[ci, 1], n_lab)[labels]], axis=1) / \
             cnt[labels, None]
         seg_cfg = self._segment or SegmentConfig()
+        weak_ok = np.zeros(len(labels), bool)
+        if weak:
+            n_inc = np.bincount(lab[ci], inc[ci], n_lab)[labels]
+            # not a cluster static support judged (furniture that rays pass beside)
+            sup = getattr(seg, "supported", None)
+            judged = (np.bincount(lab[ci], sup[ci], n_lab)[labels] > 0 if sup is not None
+                      else np.zeros(len(labels), bool))
+            weak_ok = ~judged & (n_inc >= seg_cfg.min_inconsistent_points) & \
+                (n_inc >= cfg.follow_inconsistent_fraction * cnt[labels])
         hits = None
         pairs = []
         for a in free:
             tr = self.tracks[ids[a]]
+            moving = through and tr.motion is not None
             # where the track is now, by its velocity (the exact prediction for the few
             # clusters near it only: Stone Soup's predict costs more than this whole test)
             x = tr.x
             m0 = x[:2] + x[2:] * (scan.t_mid_s - tr.t_centroids[-1])
-            near = np.flatnonzero(np.hypot(*(cent - m0).T) <= self._gate_m(tr, scan.t_mid_s) + 0.3)
+            dist = np.hypot(*(cent - m0).T)
+            near = np.flatnonzero(dist <= self._gate_m(tr, scan.t_mid_s) + 0.3)
+            # weak evidence only for the cluster nearest the prediction: a nearer one is
+            # more likely the track's object, seen without motion evidence (two people
+            # side by side: the other person's cluster must not be taken instead)
+            nearest = near[np.argmin(dist[near])] if len(near) else -1
+            if not moving:
+                near = near[(near == nearest) & weak_ok[near]]
             if not len(near):
                 continue
-            if hits is None:
-                live = scan.valid & ~seg.ground
-                hits = unique_keys(self._grid.keys(scan.points[live]))
             keys = None
             for j in near:
                 g = ci[lab[ci] == labels[j]]
                 if np.max(np.hypot(*(xy[g] - cent[j]).T)) > _OBJECT_M:
                     continue
-                if keys is None:
-                    old = [p for p in tr.points if p is not None and len(p)]
-                    keys = unique_keys(self._grid.keys(np.concatenate(old))) if old else \
-                        np.zeros(0, np.int64)
-                    # a voxel this scan also hits is not vacated: rays pass beside an edge
-                    # there (a start-up ghost's furniture), not through where a mover was
-                    keys = keys[~np.isin(keys, hits)]
-                sig = self._range_sigma(scan.range_m[g]) if self._range_sigma is not None else 0.0
-                margin = seg_cfg.margin_voxels * seg_cfg.voxel_m + 3.0 * np.asarray(sig, float)
-                hit = seen_through(scan, g, keys, self._grid, margin, cfg.follow_seen_through_m)
-                if hit.sum() < seg_cfg.min_inconsistent_points or hit.mean() < _THROUGH_FRACTION:
-                    continue
+                if weak_ok[j] and j == nearest:
+                    # and it looks like the track's object: no wider than its last cluster
+                    # (two people side by side, one cluster, are not one of them)
+                    last = tr.points[-1][:, :2]
+                    r_last = float(np.max(np.hypot(*(last - last.mean(axis=0)).T)))
+                    if np.max(np.hypot(*(xy[g] - cent[j]).T)) > r_last + _WEAK_WIDER_M:
+                        continue
+                else:
+                    if hits is None:
+                        live = scan.valid & ~seg.ground
+                        hits = unique_keys(self._grid.keys(scan.points[live]))
+                    if keys is None:
+                        old = [p for p in tr.points if p is not None and len(p)]
+                        keys = unique_keys(self._grid.keys(np.concatenate(old))) if old else \
+                            np.zeros(0, np.int64)
+                        # a voxel this scan also hits is not vacated: rays pass beside an
+                        # edge there (a start-up ghost's furniture), not through where a
+                        # mover was
+                        keys = keys[~np.isin(keys, hits)]
+                    sig = self._range_sigma(scan.range_m[g]) if self._range_sigma is not None \
+                        else 0.0
+                    margin = seg_cfg.margin_voxels * seg_cfg.voxel_m + 3.0 * np.asarray(sig, float)
+                    hit = seen_through(scan, g, keys, self._grid, margin, cfg.follow_seen_through_m)
+                    if hit.sum() < seg_cfg.min_inconsistent_points or hit.mean() < _THROUGH_FRACTION:
+                        continue
                 # the track's gates, as for a dynamic cluster (last: the prediction costs most)
                 t = float(scan.t_s[g].mean())
                 prior = self._predict(tr, t)
@@ -1243,8 +1303,9 @@ class Tracker:
                 idx, xy, near = idx[keep], xy[keep], near[keep]
             objs[b] = idx
             cents[b] = xy.mean(axis=0)
-        if cfg.follow_seen_through_m > 0 and getattr(seg, "cluster", None) is not None:
-            self._seen_through(seg, ids, assign, objs, cents, times, priors)
+        if (cfg.follow_seen_through_m > 0 or cfg.follow_inconsistent_fraction < 1.0) and \
+                getattr(seg, "cluster", None) is not None:
+            self._follow_unseen(seg, ids, assign, objs, cents, times, priors)
         # leftovers near a track's assigned cluster are pieces of the same object
         members: dict[int, list[int]] = {}
         for b, a in assign.items():
@@ -1381,11 +1442,15 @@ class Tracker:
         return unique_keys(np.concatenate(old)) if old else np.zeros(0, np.int64)
 
     def _add(self, tr: _Track, scan, idx, c, t) -> None:
-        tr.points.append(scan.points[idx])
+        pts = scan.points[idx]
+        if self.config.smooth_scan_beams > 0:
+            pts = smooth_along_scan(pts, scan.ray_dir[idx], scan.range_m[idx], scan.steps[idx],
+                                    scan.mirror[idx], self.config.smooth_scan_beams)
+        tr.points.append(pts)
         tr.n_points += len(idx)
         tr.times.append(scan.t_s[idx])
         tr.mirrors.append(scan.mirror[idx])
-        tr.weights.append(incidence_weights(scan.points[idx], scan.ray_dir[idx], scan.steps[idx],
+        tr.weights.append(incidence_weights(pts, scan.ray_dir[idx], scan.steps[idx],
                                             scan.mirror[idx])
                           if self.config.incidence_weights and self.config.entropy == "renyi"
                           else None)
