@@ -828,7 +828,7 @@ class Tracker:
             cnt[labels, None]
         seg_cfg = self._segment or SegmentConfig()
         weak_ok = np.zeros(len(labels), bool)
-        if weak:
+        if weak and inc is not None:
             n_inc = np.bincount(lab[ci], inc[ci], n_lab)[labels]
             # not a cluster static support judged (furniture that rays pass beside)
             sup = getattr(seg, "supported", None)
