@@ -545,6 +545,25 @@ def _hessian(f, x, h):
     return H
 
 
+def _beam_neighbour(steps: ArrayLike, mirror: ArrayLike):
+    """For one scan's cluster (``steps``, ``mirror``: (n,) int per point), a function of a
+    step offset ``off`` returning ``(j, ok)``: per point, the index of the point ``off``
+    steps on seen through the same window (any index where there is none) and whether
+    there is one ((n,) int, (n,) bool)."""
+    key = np.asarray(steps, np.int64) * 16 + (np.asarray(mirror, np.int64) + 1)
+    order = np.argsort(key)
+    ks = key[order]
+    n = len(ks)
+
+    def find(off: int) -> tuple[np.ndarray, np.ndarray]:
+        want = key + off * 16
+        pos = np.minimum(np.searchsorted(ks, want), max(n - 1, 0))
+        ok = (ks[pos] == want) if n else np.zeros(0, bool)
+        return order[pos], ok
+
+    return find
+
+
 def incidence_weights(points: ArrayLike, ray_dir: ArrayLike, steps: ArrayLike,
                       mirror: ArrayLike, k: int = 2, max_weight: float = 4.0) -> np.ndarray:
     """Weight ``1 / cos(incidence)`` per point of one scan's cluster, in the top view.
@@ -563,18 +582,10 @@ def incidence_weights(points: ArrayLike, ray_dir: ArrayLike, steps: ArrayLike,
     """
     p = np.asarray(points, float)[:, :2]
     d = np.asarray(ray_dir, float)[:, :2]
-    key = np.asarray(steps, np.int64) * 16 + (np.asarray(mirror, np.int64) + 1)
-    order = np.argsort(key)
-    ks = key[order]
-    n = len(ks)
-
-    def find(off):
-        want = key + off * 16
-        pos = np.minimum(np.searchsorted(ks, want), max(n - 1, 0))
-        ok = (ks[pos] == want) if n else np.zeros(0, bool)
-        return np.where(ok, order[pos], np.arange(n))
-
-    nxt, prv = find(k), find(-k)
+    n = len(p)
+    find = _beam_neighbour(steps, mirror)
+    # no neighbour that far: the point itself (one side of the chord at a cluster's end)
+    nxt, prv = (np.where(ok, j, np.arange(n)) for j, ok in (find(k), find(-k)))
     t = p[nxt] - p[prv]
     tl = np.hypot(t[:, 0], t[:, 1])
     dl = np.hypot(d[:, 0], d[:, 1])
@@ -603,12 +614,10 @@ def smooth_along_scan(points: ArrayLike, ray_dir: ArrayLike, range_m: ArrayLike,
     p = np.asarray(points, float)
     d = np.asarray(ray_dir, float)
     r = np.asarray(range_m, float)
-    key = np.asarray(steps, np.int64) * 16 + (np.asarray(mirror, np.int64) + 1)
-    order = np.argsort(key)
-    ks = key[order]
-    n = len(ks)
+    n = len(p)
     if n < 2:
         return p.copy()
+    find = _beam_neighbour(steps, mirror)
     S0 = np.ones(n)
     S1 = np.zeros(n)
     S2 = np.zeros(n)
@@ -617,10 +626,8 @@ def smooth_along_scan(points: ArrayLike, ray_dir: ArrayLike, range_m: ArrayLike,
     for off in range(-k, k + 1):
         if off == 0:
             continue
-        want = key + off * 16
-        pos = np.minimum(np.searchsorted(ks, want), n - 1)
-        j = order[pos]
-        ok = (ks[pos] == want) & (np.abs(r[j] - r) <= jump_m * abs(off))
+        j, ok = find(off)
+        ok &= np.abs(r[j] - r) <= jump_m * abs(off)
         S0 += ok
         S1 += ok * off
         S2 += ok * off * off
