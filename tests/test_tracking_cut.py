@@ -177,3 +177,27 @@ def test_a_person_overtaking_the_robot_is_crossed_at_the_speed_relative_to_it(se
     on = scene_runs("track-overtaking-robot.toml", 45, seed, True)
     scene_runs.assert_kept(on)
     assert on["P"]["conv_scan"] <= 20, on
+
+
+def test_silhouette_ends_are_the_slices_outline_only():
+    """``segment.silhouette_ends``: per window slice, an end is the object's outline where,
+    past the same surface, the next beam returns from farther or not at all; not at a
+    window's or the view's edge, nor where a nearer return hides the object."""
+    from nodlidar.tracking.segment import silhouette_ends
+
+    rng = np.full(120, 6.0)
+    mirror = np.where(np.arange(120) < 60, -1, 0)
+    rng[20:31] = 2.0  # A: background both sides
+    rng[52:60] = 2.0  # B: ends at window -1's last beam (59)
+    rng[60:64] = 2.0  # C: the same object in window 0, background after it
+    rng[80:85] = 1.0  # an occluder just before D
+    rng[85:95] = 2.0  # D: hidden on its low side, no return on its high side
+    rng[95] = np.nan
+    rng[110:120] = 2.0  # E: ends at the view's last beam
+    s = _fan(rng, mirror)
+    assert silhouette_ends(s, np.arange(20, 31)).tolist() == [[20, 30]]
+    assert silhouette_ends(s, np.arange(52, 64)).tolist() == [[52, -1], [-1, 63]]
+    assert silhouette_ends(s, np.arange(85, 95)).tolist() == [[-1, 94]]
+    assert silhouette_ends(s, np.arange(110, 120)).tolist() == [[110, -1]]
+    # the same surface beyond the cluster (a part left out of it) is followed to its end
+    assert silhouette_ends(s, np.arange(22, 29)).tolist() == [[20, 30]]

@@ -36,7 +36,7 @@ from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap, carve_samples, unique_k
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch",
            "OnlineSegmenter", "window_cut", "cut_edges", "grazing_secant", "seen_apart",
            "hidden_between",
-           "seen_through", "behind_or_through"]
+           "seen_through", "behind_or_through", "silhouette_ends"]
 
 
 @dataclass(frozen=True)
@@ -470,10 +470,7 @@ def _slice_cut_ends(scan: ScanPoints, idx: np.ndarray, reach_m: float, occluders
     if not len(idx):
         return ends
     steps, mirror = scan.steps, scan.mirror
-    # beam index by step (-1: no such beam), one slot of margin either side
-    base = int(steps.min()) - 1
-    lut = np.full(int(steps.max()) - base + 2, -1, np.int64)
-    lut[steps - base] = np.arange(len(steps))
+    lut, base = _beam_lut(steps)
     win = mirror[idx]
     ends_cut = np.zeros(len(idx), bool)  # per point: the next step is in another window
     for off in (-1, 1):
@@ -484,28 +481,77 @@ def _slice_cut_ends(scan: ScanPoints, idx: np.ndarray, reach_m: float, occluders
         st = steps[at]
         ends[int(m)] = [(e, 0) for e in sorted({int(at[np.argmin(st)]), int(at[np.argmax(st)])})]
     if reach_m > 0 or occluders:
-        valid = scan.valid
-        xy = scan.points[:, :2]
         for m in np.unique(win):
             if int(m) in ends:
                 continue
             st = steps[idx[win == m]]
-            for cur, off in ((int(lut[st.min() - base]), -1), (int(lut[st.max() - base]), 1)):
-                for _ in range(max_walk):
-                    nxt = int(lut[int(steps[cur]) + off - base])
-                    if nxt < 0 or mirror[nxt] != m:
-                        ends.setdefault(int(m), []).append((cur, 0))  # the window's (or view's) edge
-                        break
-                    if not valid[nxt]:
-                        break  # no return: the silhouette
-                    gap = float(np.hypot(*(xy[nxt] - xy[cur])))
-                    if gap <= reach_m:
-                        cur = nxt  # the same surface outside the cluster: go on
-                        continue
-                    if occluders and scan.range_m[nxt] < scan.range_m[cur] - reach_m:
-                        ends.setdefault(int(m), []).append((cur, 1))  # an occluder's edge
-                    break
+            for first, off in ((int(lut[st.min() - base]), -1), (int(lut[st.max() - base]), 1)):
+                cur, kind = _walk_out(scan, lut, base, first, off, reach_m, max_walk)
+                if kind == "edge":
+                    ends.setdefault(int(m), []).append((cur, 0))  # the window's (or view's) edge
+                elif kind == "nearer" and occluders:
+                    ends.setdefault(int(m), []).append((cur, 1))  # an occluder's edge
     return ends
+
+
+def _beam_lut(steps: np.ndarray) -> tuple[np.ndarray, int]:
+    """Beam index by step (``lut[step - base]``, -1: no such beam), one slot of margin
+    either side; returns ``(lut, base)``."""
+    base = int(steps.min()) - 1
+    lut = np.full(int(steps.max()) - base + 2, -1, np.int64)
+    lut[steps - base] = np.arange(len(steps))
+    return lut, base
+
+
+def _walk_out(scan: ScanPoints, lut: np.ndarray, base: int, cur: int, off: int,
+              reach_m: float, max_walk: int) -> tuple[int, str]:
+    """From a slice's end beam ``cur`` outwards (step ``off`` = -1 or 1) within its window,
+    through the beams whose points lie within ``reach_m`` [m] of the previous one in the top
+    view (the same surface); returns the last beam of that surface and what lies beyond it:
+    ``"edge"`` (another window's beam or none: a window's or the view's edge), ``"none"``
+    (no return), ``"nearer"`` / ``"farther"`` (a return nearer / farther by more than
+    ``reach_m``), ``"beside"`` (another return at about the same range) or ``"long"`` (the
+    surface goes on for ``max_walk`` beams)."""
+    steps, m = scan.steps, scan.mirror[cur]
+    for _ in range(max_walk):
+        nxt = int(lut[int(steps[cur]) + off - base])
+        if nxt < 0 or scan.mirror[nxt] != m:
+            return cur, "edge"
+        if not scan.valid[nxt]:
+            return cur, "none"
+        if float(np.hypot(*(scan.points[nxt, :2] - scan.points[cur, :2]))) <= reach_m:
+            cur = nxt  # the same surface outside the cluster: go on
+            continue
+        dr = float(scan.range_m[nxt] - scan.range_m[cur])
+        return cur, "nearer" if dr < -reach_m else "farther" if dr > reach_m else "beside"
+    return cur, "long"
+
+
+def silhouette_ends(scan: ScanPoints, idx: np.ndarray, reach_m: float = 0.05,
+                    max_walk: int = 64) -> np.ndarray:
+    """Per slice of the cluster (one per mirror window), its two ends where they are the
+    object's outline: followed outwards through the same surface (:func:`window_cut`'s
+    ``reach_m``), the next beam has no return or a farther one. Not an end at a window's or
+    the view's edge, nor one a nearer return hides.
+
+    idx : (k,) int, the cluster's beam indices. Returns (w, 2) int: per window, the beam
+    index (into ``scan``) of the slice's low-step and high-step end, -1 where that end is
+    not the outline.
+    """
+    idx = np.asarray(idx, np.int64)
+    if not len(idx):
+        return np.zeros((0, 2), np.int64)
+    lut, base = _beam_lut(scan.steps)
+    win = scan.mirror[idx]
+    out = []
+    for m in np.unique(win):
+        st = scan.steps[idx[win == m]]
+        row = []
+        for first, off in ((int(lut[st.min() - base]), -1), (int(lut[st.max() - base]), 1)):
+            cur, kind = _walk_out(scan, lut, base, first, off, reach_m, max_walk)
+            row.append(cur if kind in ("none", "farther") else -1)
+        out.append(row)
+    return np.asarray(out, np.int64)
 
 
 def seen_through(scan: ScanPoints, idx: np.ndarray, keys: np.ndarray, grid: VoxelGrid,
