@@ -517,7 +517,7 @@ def _walk_out(scan: ScanPoints, lut: np.ndarray, base: int, cur: int, off: int,
         nxt = int(lut[int(steps[cur]) + off - base])
         if nxt < 0 or scan.mirror[nxt] != m:
             return cur, "edge"
-        if not scan.valid[nxt]:
+        if not np.isfinite(scan.range_m[nxt]):  # (scan.valid builds the whole mask)
             return cur, "none"
         if float(np.hypot(*(scan.points[nxt, :2] - scan.points[cur, :2]))) <= reach_m:
             cur = nxt  # the same surface outside the cluster: go on

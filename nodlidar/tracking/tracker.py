@@ -823,7 +823,8 @@ class Tracker:
         a slice whose two ends are the object's outline, both at least ``_TOP_MARGIN_M``
         below the highest point of the track's window (an end at that height may be where
         the scan line leaves a face over its top)."""
-        top = max((float(p[:, 2].max()) for p in tr.points if len(p)), default=np.inf)
+        top = max((float(p[:, 2].max()) for p in tr.points if p is not None and len(p)),
+                  default=np.inf)
         if min(tr.outline_z[-_LINE_SCANS:], default=np.inf) < top - _TOP_MARGIN_M:
             return None
         v = tr.x[2:]
