@@ -201,3 +201,7 @@ def test_silhouette_ends_are_the_slices_outline_only():
     assert silhouette_ends(s, np.arange(110, 120)).tolist() == [[110, -1]]
     # the same surface beyond the cluster (a part left out of it) is followed to its end
     assert silhouette_ends(s, np.arange(22, 29)).tolist() == [[20, 30]]
+    # a farther return on the floor (every point of this fan is at z = 0): the scan line
+    # left the object at its foot, no outline
+    assert silhouette_ends(s, np.arange(20, 31), floor_z_m=0.01).tolist() == [[-1, -1]]
+    assert silhouette_ends(s, np.arange(85, 95), floor_z_m=0.01).tolist() == [[-1, 94]]

@@ -245,7 +245,7 @@ def test_a_tables_face_sliding_along_itself_is_not_a_mover(design):
                          tracker=TrackerConfig(hold_sliding_lines=hold))
         return evaluate(res), res
 
-    (on, res_on), (off, res_off) = run(True), run(False)
+    (on, _), (off, res_off) = run(True), run(False)
     assert on["false_tracks"] == 0, on["false_tracks"]
     assert off["false_tracks"] == 1, off["false_tracks"]  # the test can fail: the table
     # the false track's speed, when confirmed, read along the table's face (yaw 10 deg)
@@ -265,7 +265,7 @@ def test_a_line_is_known_by_its_shape_after_the_tracks_motion():
     smeared by its motion is not made one."""
     from types import SimpleNamespace
 
-    from nodlidar.tracking.tracker import Tracker
+    from nodlidar.tracking.tracker import _LINE_THIN, Tracker
 
     rng = np.random.default_rng(0)
 
@@ -273,7 +273,7 @@ def test_a_line_is_known_by_its_shape_after_the_tracks_motion():
         pts = [np.column_stack([c, np.zeros(len(c))]) for c in clusters]
         times = [np.full(len(c), 0.1 * k) for k, c in enumerate(clusters)]
         x = np.array([0.0, 0.0, *v])
-        return SimpleNamespace(points=pts, times=times, x=x, outline_z=[np.inf] * len(pts))
+        return SimpleNamespace(points=pts, times=times, x=x, outline_len=[np.zeros(0)] * len(pts))
 
     s = np.linspace(-0.2, 0.2, 40)
     d = np.array([np.cos(0.3), np.sin(0.3)])  # the face's direction
@@ -282,15 +282,15 @@ def test_a_line_is_known_by_its_shape_after_the_tracks_motion():
     def face(shift):
         return (np.outer(s, d) + rng.normal(0, 0.01, (40, 1)) * n_true + shift)
 
-    n = Tracker._line_normal(track([face(0)] * 3, (0.0, 0.0)))
-    assert n is not None and abs(abs(n @ n_true) - 1.0) < 1e-3, n
+    n, dirn = Tracker._line_normal(track([face(0)] * 3, (0.0, 0.0)))
+    assert abs(abs(n @ n_true) - 1.0) < 1e-3 and dirn < _LINE_THIN, (n, dirn)
     a = np.linspace(-1.2, 1.2, 40)
     arc = 0.2 * np.column_stack([-np.cos(a), np.sin(a)])  # a 0.2 m cylinder's front
     assert Tracker._line_normal(track([arc] * 3, (0.0, 0.0))) is None
     # sliding along itself at 1 m/s: moved back, one line
     v = 1.0 * d
-    n = Tracker._line_normal(track([face(0.1 * k * v) for k in range(3)], v))
-    assert n is not None and abs(abs(n @ n_true) - 1.0) < 1e-3, n
+    n, _ = Tracker._line_normal(track([face(0.1 * k * v) for k in range(3)], v))
+    assert abs(abs(n @ n_true) - 1.0) < 1e-3, n
     # a cylinder's front (+-46 deg of it) moving across at 1.5 m/s: its three arcs smeared
     # along the motion make a line (the test can fail), moved back they coincide, no line
     a = np.linspace(-0.8, 0.8, 40)
@@ -321,3 +321,26 @@ def test_a_second_rooms_table_face_is_not_a_mover_either(design):
         (ev[True]["false_tracks"], ev[False]["false_tracks"])
     for a, b in zip(ev[True]["movers"], ev[False]["movers"]):
         assert (a["tracks"], a["conv_scan"]) == (b["tracks"], b["conv_scan"]), (a, b)
+
+
+def test_a_young_tracks_speed_along_a_face_does_not_confirm_it(design):
+    """``design/scenes/track-edge-box-away.toml``, lifted, seed 6: a 0.4 x 0.8 m box face-on,
+    moving along its face at 0.4 m/s. A new track's first cluster ends where the low scan
+    line meets the floor, and its second scan reads ~2 m/s along the face (measured, seed 3:
+    2.17 m/s at 3 deg from the face's direction). With ``hold_sliding_lines`` the floor is no
+    outline, the face's extent is not shown, and only the speed across the face, less the
+    along-face speed the line's direction turns across, may confirm it: the extra tracks on
+    the box stay tentative. Without: one of them is confirmed, two identity switches."""
+    from pathlib import Path
+
+    from nodlidar.sim.scene import load_scene
+    from nodlidar.tracking.evaluate import evaluate, run_online
+    from nodlidar.tracking.tracker import TrackerConfig
+
+    scene = load_scene(Path(__file__).resolve().parents[1] / "design" / "scenes"
+                       / "track-edge-box-away.toml")
+    box = {hold: evaluate(run_online(design, scene, 45, mirrors_deployed=False, seed=6,
+                                     tracker=TrackerConfig(hold_sliding_lines=hold)))["movers"][0]
+           for hold in (True, False)}
+    assert box[True]["id_switches"] == 0 and len(box[True]["tracks"]) >= 2, box[True]
+    assert box[False]["id_switches"] == 2, box[False]  # the test can fail

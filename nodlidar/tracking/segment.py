@@ -528,11 +528,13 @@ def _walk_out(scan: ScanPoints, lut: np.ndarray, base: int, cur: int, off: int,
 
 
 def silhouette_ends(scan: ScanPoints, idx: np.ndarray, reach_m: float = 0.05,
-                    max_walk: int = 64) -> np.ndarray:
+                    max_walk: int = 64, floor_z_m: float = -np.inf) -> np.ndarray:
     """Per slice of the cluster (one per mirror window), its two ends where they are the
     object's outline: followed outwards through the same surface (:func:`window_cut`'s
-    ``reach_m``), the next beam has no return or a farther one. Not an end at a window's or
-    the view's edge, nor one a nearer return hides.
+    ``reach_m``), the next beam has no return or a farther one, not on the floor (below
+    ``floor_z_m`` [m]: there the scan line left the object at its foot, a place that moves
+    with the nod). Not an end at a window's or the view's edge, nor one a nearer return
+    hides.
 
     idx : (k,) int, the cluster's beam indices. Returns (w, 2) int: per window, the beam
     index (into ``scan``) of the slice's low-step and high-step end, -1 where that end is
@@ -549,6 +551,9 @@ def silhouette_ends(scan: ScanPoints, idx: np.ndarray, reach_m: float = 0.05,
         row = []
         for first, off in ((int(lut[st.min() - base]), -1), (int(lut[st.max() - base]), 1)):
             cur, kind = _walk_out(scan, lut, base, first, off, reach_m, max_walk)
+            if kind == "farther":
+                nxt = int(lut[int(scan.steps[cur]) + off - base])
+                kind = "floor" if scan.points[nxt, 2] < floor_z_m else kind
             row.append(cur if kind in ("none", "farther") else -1)
         out.append(row)
     return np.asarray(out, np.int64)

@@ -68,8 +68,7 @@ import numpy as np
 
 from ..errors import require
 from .motion import MotionEstimate, coarse_motion, incidence_weights, refine_motion, smooth_along_scan
-from .segment import (behind_or_through, cut_edges, hidden_between, seen_apart, seen_through,
-                      silhouette_ends)
+from .segment import behind_or_through, cut_edges, hidden_between, seen_apart, seen_through, silhouette_ends
 from .voxels import unique_keys
 
 if TYPE_CHECKING:
@@ -230,18 +229,20 @@ class TrackerConfig:
         rooms, not the default.
     hold_sliding_lines : bool
         Where a track's object is a thin straight line in the top view (its last 3
-        clusters, moved back along its velocity: a face seen alone) and no slice of those
-        scans showed the line's extent (both ends the object's outline,
-        :func:`~nodlidar.tracking.segment.silhouette_ends`, and below the highest point the
-        track has shown, where an end may be the scan line leaving the face over its top),
-        only its speed across the line confirms it. Along the line only the slices' ends
-        place it, and an end where the nodding scan line leaves a face over its top moves
-        with the nod: the front face of a table cut by a mirror window's edge at start-up
-        read 2.2-2.7 m/s along itself and was confirmed at its second scan
-        (``track-room-furniture`` with mirrors: a false track in every seed). Measured, seeds
-        0-7, every scene of the harness and 8 fresh ones: false tracks 26 / 14 -> 8 / 13
-        (mirrors / lifted), no mover's convergence, identity or purity changed
-        (docs/tracking.md "Thirteenth session"). False: the speed along the line counts.
+        clusters, moved back along its velocity: a face seen alone) whose extent those scans
+        have not shown (two of them with a slice of the same length, within 5 cm, whose
+        two ends are the object's outline: :func:`~nodlidar.tracking.segment.silhouette_ends`),
+        only its speed across the line confirms it, less the part of its speed along the
+        line that the line's uncertain direction (minor / major spread, in radians) turns
+        across. Along the line only the slices' ends place it, and where the nodding scan
+        line leaves a face over its top or at its foot, that end moves with the nod: the
+        front face of a table cut by a mirror window's edge at start-up read 2.2-2.7 m/s
+        along itself and was confirmed at its second scan (``track-room-furniture`` with
+        mirrors: a false track in every seed). Measured, seeds 0-7, every scene of the
+        harness: false tracks 26 / 14 -> 6 / 13 (mirrors / lifted); no mover's convergence
+        changed; a box face-on at the mirrors' view edge, moving along its face and seen
+        for 3-5 scans, is no longer confirmed in 2 of 8 seeds (docs/tracking.md "Thirteenth
+        session"). False: the speed along the line counts.
     entropy, sigma_m, voxel_m, max_points, voxel_max_points, warm_search_m_s, warm_voxel_grid
         The entropy refinement (:func:`refine_motion`); ``max_points`` (Rényi) and
         ``voxel_max_points`` cap the points one refinement uses (bounded work per scan).
@@ -610,7 +611,7 @@ _WEAK_WIDER_M = 0.1  # follow_inconsistent_fraction: a cluster at most this wide
 #: fraction of its major one (a table's face: 0.04-0.07; a person's front arc: ~0.4)
 _LINE_THIN = 0.15
 _LINE_SCANS = 3
-_TOP_MARGIN_M = 0.05
+_LENGTH_TOL_M = 0.05
 _OBJECT_M = 0.5  # follow_seen_through, _inconsistent_fraction: an object's points lie within
 # this of its centroid
 _COLUMN_M = 0.2  # occluded_scans: a person's radius, about a track's predicted position
@@ -645,9 +646,9 @@ class _Track:
     cut: list = field(default_factory=list)  # per scan, (k,): beam bearing if window_cut, else NaN
     edges: list = field(default_factory=list)  # per scan, (k, 2, 6): segment.cut_edges
     sensor_v: list = field(default_factory=list)  # per scan, (2,): the sensor's velocity
-    # per scan: of the slices with both ends the object's outline, the lowest height [m] of
-    # such a slice's higher end (inf: none; hold_sliding_lines, before the track moved)
-    outline_z: list = field(default_factory=list)
+    # per scan, (j,): the top-view lengths [m] of the slices with both ends the object's
+    # outline (hold_sliding_lines, before the track moved)
+    outline_len: list = field(default_factory=list)
     scans: list = field(default_factory=list)
     centroids: list = field(default_factory=list)
     t_centroids: list = field(default_factory=list)
@@ -815,18 +816,20 @@ class Tracker:
                     turn_priors.pop((a, b), None)
 
     @staticmethod
-    def _line_normal(tr: _Track) -> np.ndarray | None:
-        """The unit normal (2,) of the track's object in the top view if it is a thin straight
-        line whose extent along itself no scan has shown, else None
+    def _line_normal(tr: _Track) -> tuple[np.ndarray, float] | None:
+        """The unit normal (2,) of the track's object in the top view, and its minor to major
+        spread (the line's direction is that uncertain, in radians), if it is a thin straight
+        line whose extent along itself the scans have not shown, else None
         (``TrackerConfig.hold_sliding_lines``). The line: its last ``_LINE_SCANS`` clusters,
         moved back along the track's velocity to the last one's time. Its extent is shown by
-        a slice whose two ends are the object's outline, both at least ``_TOP_MARGIN_M``
-        below the highest point of the track's window (an end at that height may be where
-        the scan line leaves a face over its top)."""
-        top = max((float(p[:, 2].max()) for p in tr.points if p is not None and len(p)),
-                  default=np.inf)
-        if min(tr.outline_z[-_LINE_SCANS:], default=np.inf) < top - _TOP_MARGIN_M:
-            return None
+        two of those scans with a slice whose two ends are the object's outline, of the same
+        length within ``_LENGTH_TOL_M``: a face's true edges. Where the scan line leaves a
+        face over its top or at its foot, the slice's length changes with the nod."""
+        seen = [ln for ln in tr.outline_len[-_LINE_SCANS:] if len(ln)]
+        for i, a in enumerate(seen):
+            for b in seen[i + 1:]:
+                if np.any(np.abs(a[:, None] - b[None, :]) <= _LENGTH_TOL_M):
+                    return None
         v = tr.x[2:]
         t1 = float(tr.times[-1].mean())
         p = np.concatenate([pts[:, :2] - np.outer(t - t1, v)
@@ -834,7 +837,9 @@ class Tracker:
         if len(p) < 5:
             return None
         ev, vec = np.linalg.eigh(np.cov(p.T))
-        return vec[:, 0] if ev[0] <= (_LINE_THIN * _LINE_THIN) * ev[1] else None
+        if ev[0] > (_LINE_THIN * _LINE_THIN) * ev[1]:
+            return None
+        return vec[:, 0], float(np.sqrt(max(ev[0], 0.0) / max(ev[1], 1e-12)))
 
     def _follow_unseen(self, seg: Segmented, ids: list, assign: dict, objs: list,
                        cents: list, times: list, priors: dict) -> None:
@@ -1403,12 +1408,15 @@ class Tracker:
                 v = tr.x[2:]
                 sp = float(np.hypot(*v))
                 u = v / max(sp, 1e-9)
-                n = self._line_normal(tr) if cfg.hold_sliding_lines else None
-                if n is not None:
+                line = self._line_normal(tr) if cfg.hold_sliding_lines else None
+                if line is not None:
                     # a line shows only its motion across itself: along it, its ends place
-                    # it, and the top end of a face moves with the nod (furniture)
-                    sp = abs(float(v @ n))
-                    u = n
+                    # it, and the top end of a face moves with the nod (furniture); of a
+                    # speed along it, as much as the line's direction is uncertain seems to
+                    # run across
+                    u, dirn = line
+                    along = abs(float(v[0] * u[1] - v[1] * u[0]))
+                    sp = max(abs(float(v @ u)) - dirn * along, 0.0)
                 sd = float(np.sqrt(max(float(u @ tr.cov[2:, 2:] @ u), 0.0)))
                 tr.moved = sp - (sd if len(tr.scans) < cfg.confirm_sure_scans else 0.0) \
                     >= cfg.confirm_speed_m_s
@@ -1521,13 +1529,16 @@ class Tracker:
         tr.cut.append(np.where(np.isfinite(edges[:, 0, 0]), np.arctan2(d[:, 1], d[:, 0]), np.nan))
         u = getattr(scan, "sensor_velocity_m_s", None)  # duck-typed scans may lack it
         tr.sensor_v.append(np.zeros(2) if u is None else np.asarray(u, float)[:2])
-        z = np.inf
+        lengths = np.zeros(0)
         if cfg.hold_sliding_lines and not tr.moved:
-            ends = silhouette_ends(scan, idx, cfg.window_cut_reach_m)
+            from .segment import SegmentConfig
+
+            sc = self._segment or SegmentConfig()
+            ends = silhouette_ends(scan, idx, cfg.window_cut_reach_m,
+                                   floor_z_m=sc.ground_z_m + sc.ground_clearance_m)
             both = ends[(ends >= 0).all(axis=1)]
-            if len(both):
-                z = float(scan.points[both, 2].max(axis=1).min())
-        tr.outline_z.append(z)
+            lengths = np.hypot(*(scan.points[both[:, 0], :2] - scan.points[both[:, 1], :2]).T)
+        tr.outline_len.append(lengths)
         if cfg.window_cut_mask == "edges":
             edges = np.where(edges[:, :, 5:6] == 1, np.nan, edges)  # occluders' lines out
         tr.edges.append(edges if cfg.window_cut_mask != "off" else None)
