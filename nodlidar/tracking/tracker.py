@@ -239,10 +239,12 @@ class TrackerConfig:
         front face of a table cut by a mirror window's edge at start-up read 2.2-2.7 m/s
         along itself and was confirmed at its second scan (``track-room-furniture`` with
         mirrors: a false track in every seed). Measured, seeds 0-7, every scene of the
-        harness: false tracks 26 / 14 -> 6 / 13 (mirrors / lifted); no mover's convergence
-        changed; a box face-on at the mirrors' view edge, moving along its face and seen
-        for 3-5 scans, is no longer confirmed in 2 of 8 seeds (docs/tracking.md "Thirteenth
-        session"). False: the speed along the line counts.
+        harness (1440 runs): false tracks 26 / 18 -> 6 / 16 (mirrors / lifted), switches 31 /
+        38 -> 31 / 36; no mover's convergence changed. Its price: a box face-on at the
+        mirrors' view edge, moving along its face and seen for 3-5 scans, is left tentative
+        in 7 of 8 seeds (confirmed before, its speed off by 0.29-2.0 m/s in 4 of them, within
+        0.05 m/s in 3; ``track-edge-box-away``; docs/tracking.md "Thirteenth session").
+        False: the speed along the line counts.
     entropy, sigma_m, voxel_m, max_points, voxel_max_points, warm_search_m_s, warm_voxel_grid
         The entropy refinement (:func:`refine_motion`); ``max_points`` (Rényi) and
         ``voxel_max_points`` cap the points one refinement uses (bounded work per scan).
