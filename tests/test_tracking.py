@@ -260,15 +260,30 @@ def test_a_track_is_confirmed_once_it_surely_moves():
 def test_confirm_sure_scans_is_how_long_the_speed_must_be_sure():
     # the blobs above: the two-scan velocity (0.12 +- 0.13 m/s) confirms when its sd is not
     # asked for (0, or 2: "younger than two scans" never happens), not with the default
+    # (confirm_sigmas off: it too asks a speed out of its uncertainty, the next test)
     confirmed = {}
     for k_sure in (0, 2, 3):
-        trk = Tracker(TrackerConfig(confirm_sure_scans=k_sure))
+        trk = Tracker(TrackerConfig(confirm_sure_scans=k_sure, confirm_sigmas=0.0))
         confirmed[k_sure] = [trk.update(_Seg(k, [_blob([2, 0.013 * k, 0.5], k)]))[0].confirmed
                              for k in range(4)]
     assert confirmed == {0: [False, True, True, True], 2: [False, True, True, True],
                          3: [False, False, True, True]}
     with pytest.raises(ParameterError, match="confirm_sure_scans = -1 .*>= 0"):
         TrackerConfig(confirm_sure_scans=-1)
+
+
+def test_confirm_sigmas_asks_the_speed_to_stand_out_of_its_uncertainty():
+    # the same blobs: with the sure scans off, the two-scan velocity (0.12 +- 0.13 m/s)
+    # confirms on its speed alone, not with confirm_sigmas (default 1.5): 0.12 < 1.5 x 0.135.
+    # From three scans (0.14 +- 0.06 m/s) it does either way.
+    confirmed = {}
+    for z in (0.0, 1.5):
+        trk = Tracker(TrackerConfig(confirm_sure_scans=0, confirm_sigmas=z))
+        confirmed[z] = [trk.update(_Seg(k, [_blob([2, 0.013 * k, 0.5], k)]))[0].confirmed
+                        for k in range(4)]
+    assert confirmed == {0.0: [False, True, True, True], 1.5: [False, False, True, True]}
+    with pytest.raises(ParameterError, match="confirm_sigmas = -1 .*>= 0"):
+        TrackerConfig(confirm_sigmas=-1)
 
 
 def _labelled(k, blobs, dynamic, inconsistent, supported=None):
