@@ -124,6 +124,37 @@ def test_edge_mask_keeps_every_pair_without_a_cut_and_drops_unseen_ones():
     assert masked(vel) > plain(vel)
 
 
+def test_cut_lines_that_leave_no_pair_across_time_are_ignored():
+    # A person entering the mirrors' view 0.9 m away (tests/data: the tracker's inputs at one
+    # scan of the simulator, 10 points of one window over three scans): each scan sees a
+    # sliver at the view's edge, where the scan before could not see, so the cut lines keep
+    # no pair of points from two scans. The cost is then flat in the velocity, and the
+    # minimiser ran off to 233 m/s (measured; the track's filtered velocity went 0.5 ->
+    # 0.89 m/s, 40-90 deg off, for 10 scans). refine_motion then drops the lines and uses
+    # every pair, as for labels that never span two scans.
+    from pathlib import Path
+
+    d = np.load(Path(__file__).parent / "data" / "renyi_view_edge_sliver.npz")
+    P, T, w0 = d["points"], d["t_s"], d["guess_velocity"]
+    kw = dict(sigma_m=0.02, renyi_method="newton", renyi_subsample="pairs", max_points=300,
+              labels=d["labels"], weights=d["weights"], search_m_s=0.03)
+    masked = RenyiCost(P, T, T.max(), 0.02, w0, max_dv_m_s=0.03, max_points=300,
+                       subsample="pairs", labels=d["labels"], weights=d["weights"],
+                       edges=d["edges"])
+    assert masked.dt_kept_s < 0.25 * np.ptp(T), (masked.dt_kept_s, np.ptp(T))
+    # flat: the pairs kept are 0.3 ms apart at most, so 0.5 m/s more moves the cost by
+    # 0.0007 (measured), against 0.16 for every pair
+    plain_cost = RenyiCost(P, T, T.max(), 0.02, w0, max_dv_m_s=0.03, max_points=300,
+                           subsample="pairs", labels=d["labels"], weights=d["weights"])
+    dv = np.array([0.5, -0.5])
+    assert abs(masked(w0 + dv) - masked(w0)) < 0.05 * abs(plain_cost(w0 + dv) - plain_cost(w0))
+    guess = MotionEstimate(*motion_from_velocity(w0))
+    est = refine_motion(P, T, guess, edges=d["edges"], **kw)
+    plain = refine_motion(P, T, guess, **kw)
+    assert_allclose(est.velocity, plain.velocity, rtol=0, atol=0)
+    assert est.v_m_s < 1.0, est.v_m_s  # the person walks at 0.5 m/s
+
+
 @pytest.mark.parametrize("seed", [0, 4])
 def test_a_person_entering_the_mirrors_view_converges_sooner_comparing_what_both_scans_saw(
         seed, scene_runs):

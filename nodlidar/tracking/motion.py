@@ -309,6 +309,7 @@ class RenyiCost:
         and the pairs it does have pull the motion towards the cut, a line fixed in the
         sensor. The pairs kept are chosen once, at ``center_velocity`` (the cost stays
         smooth); the tracker's next refinement starts from this one's minimum.
+        ``dt_kept_s`` says how far apart in time the kept pairs reach.
     """
 
     def __init__(self, points: ArrayLike, t_s: ArrayLike, t_ref_s: float, sigma_m: float,
@@ -391,9 +392,13 @@ class RenyiCost:
         # point weights: the self terms sum w_i^2, each pair w_i w_j, normalised by (sum w)^2
         # (all ones: the plain sum, n self terms over n^2)
         self.pw = None if wt is None else (wt[i] * wt[j]).astype(np.float32)
+        #: the longest time between the two points of a pair the sum keeps [s] (the motion
+        #: is observed only through pairs of points seen at different times)
+        self.dt_kept_s = float(np.max(np.abs(dt), initial=0.0))
         if ed is not None and len(i):
             seen = _seen_by_both(p_xy, dt, ed, i, j, np.asarray(center_velocity, float))
             self.pw = seen.astype(np.float32) if self.pw is None else self.pw * seen
+            self.dt_kept_s = float(np.max(np.abs(dt[seen]), initial=0.0))
         self.s0 = float(self.n) if wt is None else float(np.sum(wt ** 2))
         self.norm = float(self.n) ** 2 if wt is None else float(np.sum(wt)) ** 2
         self.c = np.asarray(center_velocity, float)
@@ -728,6 +733,8 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
     edges : (n, 2, >=5) float, optional
         Rényi: per point, the lines where its scan's view was cut; pairs are kept only
         where both scans could see both points (:class:`RenyiCost`); None: every pair.
+        Ignored (every pair) when the pairs kept span less than a quarter of the points'
+        time span: they would leave the velocity unobserved.
 
     Returns
     -------
@@ -754,6 +761,16 @@ def refine_motion(points: np.ndarray, t_s: np.ndarray, guess: MotionEstimate, *,
         cost = RenyiCost(p, t, t_ref, sigma_m, w0, max_dv_m_s=search_m_s, plane=plane,
                          max_points=max_points, subsample=renyi_subsample, labels=labels,
                          weights=weights, edges=edges)
+        if edges is not None and cost.dt_kept_s < 0.25 * float(np.ptp(t)):
+            # the cut lines left no pair of points seen at different times (an object
+            # entering the view, seen as a sliver at its edge in each scan: each scan's
+            # points lie where the scan before could not see): the cost would be flat in
+            # the velocity and the minimiser run off (233 m/s, measured). Every pair, as
+            # for labels that never span two scans.
+            edges = None
+            cost = RenyiCost(p, t, t_ref, sigma_m, w0, max_dv_m_s=search_m_s, plane=plane,
+                             max_points=max_points, subsample=renyi_subsample, labels=labels,
+                             weights=weights)
         nt = _newton(cost, w0, search_m_s / 4) if renyi_method == "newton" else None
         if nt is not None and np.linalg.norm(nt[0] - w0) <= search_m_s:
             w, fval, H = nt
