@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from nodlidar.tracking.scans import ScanPoints
-from nodlidar.tracking.segment import behind_or_through
+from nodlidar.tracking.segment import behind_or_through, column_rays
 from nodlidar.tracking.tracker import Tracker, TrackerConfig
 
 
@@ -54,6 +54,12 @@ def test_beams_in_front_of_the_column_hide_it_and_beams_beyond_pass_through():
     # only the beams asked about
     hidden, _ = behind_or_through(_fan(2.0), c, r, z, 0.15, beams=np.flatnonzero(meets)[:5])
     np.testing.assert_array_equal(np.sort(hidden), np.flatnonzero(meets)[:5])
+    # column_rays also counts the beams that end inside (within the margin): something is
+    # there. Every meeting beam falls in exactly one of the three counts.
+    for at, want in ((2.0, (31, 0, 0)), (5.0, (0, 31, 0)), (2.9, (0, 0, 31)), (3.1, (0, 0, 31)),
+                     (np.nan, (0, 0, 0))):
+        hidden, through, inside = column_rays(_fan(at), c, r, z, 0.15)
+        assert (len(hidden), through, inside) == want, (at, len(hidden), through, inside)
 
 
 class _Walls:

@@ -36,7 +36,7 @@ from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap, carve_samples, unique_k
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch",
            "OnlineSegmenter", "window_cut", "cut_edges", "grazing_secant", "seen_apart",
            "hidden_between",
-           "seen_through", "behind_or_through", "silhouette_ends"]
+           "seen_through", "behind_or_through", "column_rays", "silhouette_ends"]
 
 
 @dataclass(frozen=True)
@@ -608,17 +608,17 @@ def seen_through(scan: ScanPoints, idx: np.ndarray, keys: np.ndarray, grid: Voxe
                        minlength=len(idx)) > 0
 
 
-def behind_or_through(scan: ScanPoints, center_xy: np.ndarray, radius_m: float,
-                      z_m: tuple[float, float], margin_m: float,
-                      beams: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+def column_rays(scan: ScanPoints, center_xy: np.ndarray, radius_m: float,
+                z_m: tuple[float, float], margin_m: float,
+                beams: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
     """How the scan's beams meet a vertical column where an object is predicted to be.
 
     The column is a cylinder of ``radius_m`` about ``center_xy`` between heights ``z_m``.
     A beam whose ray enters it (at a height within ``z_m``) either ends more than
     ``margin_m`` before it - something nearer hides whatever is there - or more than
     ``margin_m`` beyond it - the column is free: nothing is there. Beams that end inside
-    (the object's own surface, or something at its place) and beams without a return
-    count as neither.
+    (the object's own surface, or something at its place) are counted apart; beams
+    without a return count as none of these.
 
     Parameters
     ----------
@@ -640,6 +640,8 @@ def behind_or_through(scan: ScanPoints, center_xy: np.ndarray, radius_m: float,
         Indices of the beams that end in front of the column.
     n_through : int
         Beams that pass through it.
+    n_inside : int
+        Beams that end inside it, within ``margin_m``: something is there.
     """
     ok = np.arange(len(scan.range_m)) if beams is None else np.asarray(beams, np.int64)
     rng = scan.range_m[ok] - scan.ray_offset[ok]
@@ -656,7 +658,15 @@ def behind_or_through(scan: ScanPoints, center_xy: np.ndarray, radius_m: float,
     meets = (miss2 <= radius_m ** 2) & (s_mid > 0) & (z >= z_m[0]) & (z <= z_m[1])
     hidden = meets & (length < s_mid - half - margin_m)
     through = meets & (length > s_mid + half + margin_m)
-    return ok[hidden], int(through.sum())
+    return ok[hidden], int(through.sum()), int(np.count_nonzero(meets & ~hidden & ~through))
+
+
+def behind_or_through(scan: ScanPoints, center_xy: np.ndarray, radius_m: float,
+                      z_m: tuple[float, float], margin_m: float,
+                      beams: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """:func:`column_rays` without the beams that end inside: (hidden, n_through)."""
+    hidden, n_through, _ = column_rays(scan, center_xy, radius_m, z_m, margin_m, beams)
+    return hidden, n_through
 
 
 def seen_apart(scan: ScanPoints, a: np.ndarray, b: np.ndarray, beyond_m: float = 0.1,

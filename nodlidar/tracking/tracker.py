@@ -68,7 +68,15 @@ import numpy as np
 
 from ..errors import require
 from .motion import MotionEstimate, coarse_motion, incidence_weights, refine_motion, smooth_along_scan
-from .segment import behind_or_through, cut_edges, hidden_between, seen_apart, seen_through, silhouette_ends
+from .segment import (
+    behind_or_through,
+    column_rays,
+    cut_edges,
+    hidden_between,
+    seen_apart,
+    seen_through,
+    silhouette_ends,
+)
 from .voxels import unique_keys
 
 if TYPE_CHECKING:
@@ -339,6 +347,13 @@ class TrackerConfig:
         track to another person while its own was not dynamic, or was in a cluster a ghost
         had taken, and start-up ghosts on furniture (the furniture is always nearest to a
         ghost's place) reached movers. 0: off.
+    reacquire_gone_only : bool
+        A track seen in one scan only is re-acquired only if its thing is not still where
+        it was seen: the
+        latest scan whose beams met a person-sized column there (floor to its highest
+        point) did not find most of them ending inside it (:meth:`Tracker._look_at_place`).
+        A start-up ghost on furniture stays where the furniture is; a person seen once and
+        gone on leaves the place free or unseen.
     reacquire_moving : bool
         Opt-in: the same for a moving track unseen for more than ``turn_scans`` scans,
         within its own speed x the time since it was seen + ``gate_m`` of where it was
@@ -507,6 +522,7 @@ class TrackerConfig:
     reacquire_speed_m_s: float = 0.0
     reacquire_births_m_s: float = 1.5
     reacquire_moving: bool = False
+    reacquire_gone_only: bool = True
     stitch_turned_m: float = 0.35
     follow_supported_m_s: float = 0.1
     window_cut_speed_m_s: float = 0.1
@@ -680,6 +696,9 @@ class _Track:
     state: Any = None  # stonesoup GaussianState (x, vx, y, vy)
     start: int = 0  # index in the lists where the current motion starts (after a turn)
     hidden: int = 0  # scans since last seen in which its predicted place was hidden
+    # a track seen once: its place as the latest scan that looked there found it: True something
+    # is there, False rays passed through, None not looked at (TrackerConfig.reacquire_gone_only)
+    place_there: bool | None = None
     moved: bool = False  # its speed reached confirm_speed_m_s once (TrackerConfig)
     parent: int | None = None  # a lost moving track this new one may continue (stitch)
 
@@ -992,7 +1011,9 @@ class Tracker:
         cfg = self.config
         scan = seg.scan
         lone = [a for a, tid in enumerate(ids) if a not in members
-                and self.tracks[tid].last_scan < scan.scan and (
+                and self.tracks[tid].last_scan < scan.scan
+                and not (len(self.tracks[tid].scans) == 1 and self.tracks[tid].place_there)
+                and (
                     self.tracks[tid].motion is None or (
                         (cfg.reacquire_moving or cfg.stitch_turned_m > 0)
                         and scan.scan - self.tracks[tid].last_scan > cfg.turn_scans))]
@@ -1106,6 +1127,25 @@ class Tracker:
         n_hidden = len(behind_or_through(scan, m, _COLUMN_M, z, _COLUMN_MARGIN_M, movers)[0])
         return n_hidden >= 3 and n_hidden > behind_or_through(
             scan, m, _COLUMN_M, z, _COLUMN_MARGIN_M)[1]
+
+    def _look_at_place(self, tr: _Track, scan: ScanPoints) -> None:
+        """Update ``tr.place_there`` from ``scan``: of the beams that meet a person-sized
+        column where ``tr`` was last seen (floor to its highest point), 3 or more, and
+        more than pass through, end inside it - something is still there; 3 or more, and
+        more than end inside, pass through - it is gone
+        (:func:`~nodlidar.tracking.segment.column_rays`). Otherwise unchanged."""
+        from .segment import SegmentConfig
+
+        pts = [p for p in tr.points if p is not None and len(p)]
+        if not pts:
+            return
+        sc = self._segment or SegmentConfig()
+        z = (sc.ground_z_m + sc.ground_clearance_m, max(float(p[:, 2].max()) for p in pts))
+        _, n_through, n_in = column_rays(scan, tr.centroids[-1], _COLUMN_M, z, _COLUMN_MARGIN_M)
+        if n_in >= 3 and n_in > n_through:
+            tr.place_there = True
+        elif n_through >= 3 and n_through > n_in:
+            tr.place_there = False
 
     def _gate_m(self, tr: _Track, t: float) -> float:
         """Distance gate [m] of ``tr`` for a cluster at time ``t`` [s]: ``gate_m``, grown
@@ -1502,6 +1542,8 @@ class Tracker:
             if cfg.occluded_scans > 0 and tr.last_scan < scan.scan and len(movers) and \
                     self._hidden(tr, scan, movers):
                 tr.hidden += 1
+            if cfg.reacquire_gone_only and len(tr.scans) == 1 and tr.last_scan < scan.scan:
+                self._look_at_place(tr, scan)
             if scan.scan - tr.last_scan > cfg.max_missed + min(tr.hidden, cfg.occluded_scans):
                 del self.tracks[tid]
                 self.ended.append(tr)
