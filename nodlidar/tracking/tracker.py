@@ -348,12 +348,14 @@ class TrackerConfig:
         had taken, and start-up ghosts on furniture (the furniture is always nearest to a
         ghost's place) reached movers. 0: off.
     reacquire_gone_only : bool
-        A track seen in one scan only is re-acquired only if its thing is not still where
-        it was seen: the
-        latest scan whose beams met a person-sized column there (floor to its highest
-        point) did not find most of them ending inside it (:meth:`Tracker._look_at_place`).
-        A start-up ghost on furniture stays where the furniture is; a person seen once and
-        gone on leaves the place free or unseen.
+        A track seen in one scan only is not re-acquired by a cluster it could have reached
+        only by leaving its place earlier than a scan found something still there: the
+        latest scan whose beams met a person-sized column at that place (0.2 m, floor to
+        its highest point) found most of them ending inside it (:meth:`Tracker._look_at_place`),
+        at a time when, at the speed the continuation implies, the object would have been
+        more than 0.35 m (the column and its margin) away. A start-up ghost on furniture
+        stays where the furniture is; a person seen once and walking on is near their place
+        only for as long as their speed allows.
     reacquire_moving : bool
         Opt-in: the same for a moving track unseen for more than ``turn_scans`` scans,
         within its own speed x the time since it was seen + ``gate_m`` of where it was
@@ -696,9 +698,9 @@ class _Track:
     state: Any = None  # stonesoup GaussianState (x, vx, y, vy)
     start: int = 0  # index in the lists where the current motion starts (after a turn)
     hidden: int = 0  # scans since last seen in which its predicted place was hidden
-    # a track seen once: its place as the latest scan that looked there found it: True something
-    # is there, False rays passed through, None not looked at (TrackerConfig.reacquire_gone_only)
-    place_there: bool | None = None
+    # a track seen once: when [s] the latest scan that looked at its place found something
+    # there; None if that scan found it free, or none looked (TrackerConfig.reacquire_gone_only)
+    place_there: float | None = None
     moved: bool = False  # its speed reached confirm_speed_m_s once (TrackerConfig)
     parent: int | None = None  # a lost moving track this new one may continue (stitch)
 
@@ -1012,7 +1014,6 @@ class Tracker:
         scan = seg.scan
         lone = [a for a, tid in enumerate(ids) if a not in members
                 and self.tracks[tid].last_scan < scan.scan
-                and not (len(self.tracks[tid].scans) == 1 and self.tracks[tid].place_there)
                 and (
                     self.tracks[tid].motion is None or (
                         (cfg.reacquire_moving or cfg.stitch_turned_m > 0)
@@ -1030,7 +1031,14 @@ class Tracker:
                 # a moving track's object turned at its own speed (within its gate)
                 reach = (cfg.reacquire_births_m_s * dt if tr.motion is None
                          else float(np.hypot(*tr.x[2:])) * dt + cfg.gate_m)
-                if float(np.hypot(*(cents[b] - tr.centroids[-1]))) > reach:
+                jump = float(np.hypot(*(cents[b] - tr.centroids[-1])))
+                if jump > reach:
+                    continue
+                if len(tr.scans) == 1 and tr.place_there is not None and dt > 0 and \
+                        jump / dt * (tr.place_there - tr.t_centroids[-1]) > \
+                        _COLUMN_M + _COLUMN_MARGIN_M:
+                    # at the speed this continuation implies, the object had left its place
+                    # when a scan found something still there: a ghost on something static
                     continue
                 if lab is not None:
                     # no other cluster of the scan (dynamic or not, taken or not) nearer to
@@ -1131,8 +1139,8 @@ class Tracker:
     def _look_at_place(self, tr: _Track, scan: ScanPoints) -> None:
         """Update ``tr.place_there`` from ``scan``: of the beams that meet a person-sized
         column where ``tr`` was last seen (floor to its highest point), 3 or more, and
-        more than pass through, end inside it - something is still there; 3 or more, and
-        more than end inside, pass through - it is gone
+        more than pass through, end inside it - something is still there (the scan's
+        time); 3 or more, and more than end inside, pass through - it is gone (None)
         (:func:`~nodlidar.tracking.segment.column_rays`). Otherwise unchanged."""
         from .segment import SegmentConfig
 
@@ -1143,9 +1151,9 @@ class Tracker:
         z = (sc.ground_z_m + sc.ground_clearance_m, max(float(p[:, 2].max()) for p in pts))
         _, n_through, n_in = column_rays(scan, tr.centroids[-1], _COLUMN_M, z, _COLUMN_MARGIN_M)
         if n_in >= 3 and n_in > n_through:
-            tr.place_there = True
+            tr.place_there = scan.t_mid_s
         elif n_through >= 3 and n_through > n_in:
-            tr.place_there = False
+            tr.place_there = None
 
     def _gate_m(self, tr: _Track, t: float) -> float:
         """Distance gate [m] of ``tr`` for a cluster at time ``t`` [s]: ``gate_m``, grown
