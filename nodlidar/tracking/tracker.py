@@ -353,7 +353,8 @@ class TrackerConfig:
         latest scan whose beams met a person-sized column at that place (0.2 m, floor to
         its highest point) found most of them ending inside it (:meth:`Tracker._look_at_place`),
         at a time when, at the speed the continuation implies, the object would have been
-        more than 0.35 m (the column and its margin) away. A start-up ghost on furniture
+        clear of it: more than 0.55 m away (the column, its margin, and the object's own
+        radius, taken as the column's). A start-up ghost on furniture
         stays where the furniture is; a person seen once and walking on is near their place
         only for as long as their speed allows.
     reacquire_moving : bool
@@ -1036,9 +1037,10 @@ class Tracker:
                     continue
                 if len(tr.scans) == 1 and tr.place_there is not None and dt > 0 and \
                         jump / dt * (tr.place_there - tr.t_centroids[-1]) > \
-                        _COLUMN_M + _COLUMN_MARGIN_M:
-                    # at the speed this continuation implies, the object had left its place
-                    # when a scan found something still there: a ghost on something static
+                        2 * _COLUMN_M + _COLUMN_MARGIN_M:
+                    # at the speed this continuation implies, the object (itself up to a
+                    # column wide) had left the column when a scan found something still
+                    # there: a ghost on something static
                     continue
                 if lab is not None:
                     # no other cluster of the scan (dynamic or not, taken or not) nearer to
