@@ -354,9 +354,9 @@ class TrackerConfig:
         its highest point) found most of them ending inside it (:meth:`Tracker._look_at_place`),
         at a time when, at the speed the continuation implies, the object would have been
         clear of it: more than 0.55 m away (the column, its margin, and the object's own
-        radius, taken as the column's). A start-up ghost on furniture
-        stays where the furniture is; a person seen once and walking on is near their place
-        only for as long as their speed allows. Measured (``track-pace-room``, lifted, seed
+        radius, taken as the column's). A start-up ghost on furniture stays where the
+        furniture is; a person seen once and walking on is near their place only for as
+        long as their speed allows. Measured (``track-pace-room``, lifted, seed
         4): a ghost seen once on the table at scan 35 took the lamp 2.2 m away at scan 57
         (dynamic as a person passed behind it) and was confirmed at the 1 m/s of the jump;
         with this, no false track. Over the harness (seeds 0-7, 1568 runs) false tracks
@@ -1019,8 +1019,7 @@ class Tracker:
         cfg = self.config
         scan = seg.scan
         lone = [a for a, tid in enumerate(ids) if a not in members
-                and self.tracks[tid].last_scan < scan.scan
-                and (
+                and self.tracks[tid].last_scan < scan.scan and (
                     self.tracks[tid].motion is None or (
                         (cfg.reacquire_moving or cfg.stitch_turned_m > 0)
                         and scan.scan - self.tracks[tid].last_scan > cfg.turn_scans))]
@@ -1040,7 +1039,8 @@ class Tracker:
                 jump = float(np.hypot(*(cents[b] - tr.centroids[-1])))
                 if jump > reach:
                     continue
-                if len(tr.scans) == 1 and tr.place_there is not None and dt > 0 and \
+                if cfg.reacquire_gone_only and len(tr.scans) == 1 and \
+                        tr.place_there is not None and dt > 0 and \
                         jump / dt * (tr.place_there - tr.t_centroids[-1]) > \
                         2 * _COLUMN_M + _COLUMN_MARGIN_M:
                     # at the speed this continuation implies, the object (itself up to a
