@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 import pytest
-from numpy.testing import assert_allclose
+from numpy.testing import assert_allclose, assert_array_equal
 
 from nodlidar.errors import ParameterError
 from nodlidar.paper import TABLE_I_PERTURBATIONS
@@ -21,11 +21,13 @@ from nodlidar.sim.scene import (
     HIT_NONE,
     HIT_STATIC,
     BackAndForth,
+    ConstantVelocity,
     Cylinder,
     Mover,
     Plane,
     Scene,
     SensorPose,
+    Waypoints,
     builtin_scene,
     load_scene,
     wall_scene,
@@ -386,6 +388,64 @@ def test_no_return_and_limits(design):
     assert np.all(np.isnan(far.range_m[back])) and np.all(far.object_id[back] == HIT_NONE)
 
 
+def test_waypoints_walk_the_legs_at_their_speeds_and_wait_at_each_waypoint():
+    """Times worked by hand: legs of 1 m at 0.5 m/s (2 s) and 2 m at 1 m/s (2 s), a 1 s
+    wait at the middle waypoint; before t0 at the first waypoint, after the end at the
+    last. The velocity is the derivative of the position away from the corners."""
+    tr = Waypoints([[0, 0, 0], [1, 0, 0], [1, 2, 0]], [0.5, 1.0], pause_s=1.0, t0_s=1.0)
+    assert tr.duration_s == pytest.approx(5.0)
+    t = np.array([0.0, 1.0, 2.0, 3.0, 3.5, 4.0, 5.0, 6.0, 9.0])
+    assert_allclose(tr.position(t)[:, :2], [[0, 0], [0, 0], [0.5, 0], [1, 0], [1, 0], [1, 0],
+                                            [1, 1], [1, 2], [1, 2]], atol=1e-12)
+    assert_allclose(tr.velocity(t)[:, :2], [[0, 0], [0.5, 0], [0.5, 0], [0, 0], [0, 0],
+                                            [0, 1], [0, 1], [0, 0], [0, 0]], atol=1e-12)
+    # round and round: periodic, and waiting at the first waypoint on each return too
+    lp = Waypoints([[0, 0, 0], [1, 0, 0], [1, 1, 0]], 0.5, pause_s=0.5, loop=True)
+    per = 2 + 2 + 2 * math.sqrt(2) + 3 * 0.5
+    assert lp.duration_s == pytest.approx(per)
+    ts = np.linspace(0.013, 3 * per, 997)
+    assert_allclose(lp.position(ts + per), lp.position(ts), atol=1e-12)
+    h = 1e-7
+    fd = (lp.position(ts + h) - lp.position(ts - h)) / (2 * h)
+    corner = np.any(np.abs(np.mod(ts, per)[:, None] - np.array(
+        [0, 2, 2.5, 4.5, 5, 5 + 2 * math.sqrt(2), per])) < 1e-6, axis=1)
+    assert_allclose(fd[~corner], lp.velocity(ts)[~corner], atol=1e-6)
+    assert_allclose(lp.position(per - 0.25), [0, 0, 0], atol=1e-12)  # waiting at the first
+
+
+def test_a_waypoints_mover_is_seen_as_the_same_motion_by_the_kernel_law(design):
+    """The simulator casts a waypoints mover through its own ``position(t)`` per beam,
+    the built-in kinds through the compiled law: on a leg the two must give the same
+    ranges, to rounding (the same rays, the same mesh)."""
+    v = np.array([0.0, 6.0, 0.0])  # m/s: fast, so each beam's own time matters
+    start = np.array([1.5, -1.6, 0.0])
+    wp = Waypoints([tuple(start), tuple(start + 2 * v)], 6.0)
+    cv = ConstantVelocity(tuple(start), tuple(v))
+    scans = []
+    for traj in (wp, cv):
+        scene = Scene("m", (), (Mover(Cylinder(0.25, 2.0, -1.0), traj, "p"),), SensorPose((0, 0, 0)))
+        scans.append(SceneSimulator(design, scene).scan(0.3, 0.0, 1.0, 1.0, noise=False))
+    hit = scans[1].object_id == 1
+    assert hit.sum() >= 5
+    assert_array_equal(scans[0].object_id, scans[1].object_id)
+    assert_allclose(scans[0].true_range_m[hit], scans[1].true_range_m[hit], atol=1e-9)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"points_m": [[0, 0, 0]]}, "at least 2 waypoints"),
+    ({"points_m": [[0, 0, 0], [0, 0, 0]]}, "points_m.1.*different"),
+    ({"points_m": [[0, 0], [1, 0, 0]]}, "points_m.0.*3 finite"),
+    ({"speed_m_s": [1.0, 2.0]}, "one per leg .1."),
+    ({"speed_m_s": -1.0}, "speed_m_s"),
+    ({"speed_m_s": "fast"}, "speed_m_s"),
+    ({"pause_s": -1.0}, "pause_s.*>= 0"),
+])
+def test_waypoints_reject_bad_input_by_name(kw, match):
+    args = {"points_m": [[0, 0, 0], [1, 0, 0]], "speed_m_s": 1.0, **kw}
+    with pytest.raises(ParameterError, match=match):
+        Waypoints(**args)
+
+
 def test_scene_toml_round_trip_and_errors(tmp_path):
     p = tmp_path / "s.toml"
     p.write_text("""
@@ -418,9 +478,16 @@ size_m = [0.3, 0.3, 0.6]
 trajectory = "constant_velocity"
 start_m = [0.0, 0.0, 0.0]
 velocity_m_s = [0.1, 0.0, 0.0]
+[[mover]]
+trajectory = "waypoints"
+points_m = [[1.0, -1.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]
+speed_m_s = 0.5
+pause_s = 2.0
 """)
     s = Scene.from_toml(p)
-    assert s.name == "lab" and len(s.statics) == 3 and len(s.movers) == 2
+    assert s.name == "lab" and len(s.statics) == 3 and len(s.movers) == 3
+    assert_allclose(s.movers[2].position(np.array([1.0, 3.0, 5.0])),
+                    [[1.0, -0.5, 0.0], [1.0, 0.0, 0.0], [1.5, 0.0, 0.0]], atol=1e-12)
     assert_allclose(s.sensor.yaw_rad, math.pi / 2)
     assert len(s.static_parts()) == 5 + 1 + 1  # 4 walls + floor, box, plane
     assert_allclose(s.movers[0].position(4.0), [2.0, 0.5, 0.0], atol=1e-12)
@@ -429,6 +496,9 @@ velocity_m_s = [0.1, 0.0, 0.0]
     bad = tmp_path / "bad.toml"
     bad.write_text("[[mover]]\ntrajectory = 'zigzag'\n")
     with pytest.raises(ParameterError, match="trajectory"):
+        Scene.from_toml(bad)
+    bad.write_text("[[mover]]\ntrajectory = 'waypoints'\nspeed_m_s = 1.0\n")
+    with pytest.raises(ParameterError, match="points_m.*required for trajectory 'waypoints'"):
         Scene.from_toml(bad)
     bad.write_text("walls = 3\n")
     with pytest.raises(ParameterError, match="walls"):

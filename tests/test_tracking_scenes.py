@@ -58,10 +58,12 @@ def test_plane_clustering_attaches_sparse_edge_points():
 
 
 def test_mover_truth_velocity_is_the_derivative_of_position():
-    from nodlidar.sim.scene import load_scene
+    from nodlidar.sim.scene import load_scene, scene_from_dict
 
-    for f in ("design/scenes/track-crossing.toml", "paper-tracking"):
-        sc = load_scene(f)
+    for f in ("design/scenes/track-crossing.toml", "paper-tracking", "stop-and-go"):
+        sc = load_scene(f) if f != "stop-and-go" else scene_from_dict({"mover": [{
+            "trajectory": "waypoints", "points_m": [[1, -1, 0], [2, 0, 0], [2, 1.5, 0]],
+            "speed_m_s": [0.7, 0.4], "pause_s": 1.5}]})
         t = np.linspace(0.3, 7.7, 40)
         h = 1e-4
         p0, v = E.mover_truth(sc, t)

@@ -49,10 +49,16 @@ takes either. TOML format (angles in degrees at this edge, ``*_deg``)::
     radius_m = 0.18
     height_m = 1.0
     base_z_m = 0.0                # bottom of the shape relative to the trajectory point
-    trajectory = "back_and_forth" # or "constant_velocity", "fixed"
+    trajectory = "back_and_forth" # or "constant_velocity", "fixed", "waypoints"
     start_m = [2.0, -0.8, 0.0]
     end_m = [2.0, 0.8, 0.0]
     speed_m_s = 0.13
+    [[mover]]                     # stop and go: straight legs between waypoints
+    trajectory = "waypoints"
+    points_m = [[1.5, -1.0, 0.0], [2.5, -1.0, 0.0], [2.5, 0.5, 0.0]]
+    speed_m_s = 0.6               # or one per leg: [0.6, 0.3]
+    pause_s = 2.0                 # waits at each waypoint it reaches (default 0)
+    loop = false                  # true: on to the first waypoint and round again
 
 Object ids used in ground truth: :data:`HIT_NONE` (-1) no hit, :data:`HIT_STATIC` (0) the
 static world, ``1 + k`` mover ``k``.
@@ -87,6 +93,7 @@ __all__ = [
     "Fixed",
     "ConstantVelocity",
     "BackAndForth",
+    "Waypoints",
     "Mover",
     "SensorPose",
     "Scene",
@@ -465,7 +472,98 @@ class BackAndForth:
         return s + frac[..., None] * (np.asarray(self.end_m) - s)
 
 
-Trajectory = Fixed | ConstantVelocity | BackAndForth
+@dataclass(frozen=True)
+class Waypoints:
+    """Straight legs through ``points_m`` [m] at ``speed_m_s`` [m/s] (one value, or one
+    per leg), waiting ``pause_s`` [s] at each waypoint it reaches: a person who stops and
+    turns, a cart taken round a corner. After the last waypoint it stays there; with
+    ``loop`` it goes on to the first and round again (then it also waits at the first on
+    each return). Before ``t0_s`` [s] it waits at the first waypoint.
+    """
+
+    points_m: tuple[tuple[float, float, float], ...]
+    speed_m_s: float | tuple[float, ...]
+    pause_s: float = 0.0
+    loop: bool = False
+    t0_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        raw = self.points_m
+        require(isinstance(raw, Sequence) and len(raw) >= 2, "trajectory.points_m",
+                raw, "a list of at least 2 waypoints [x, y, z]")
+        pts = tuple(_v3(p, f"trajectory.points_m[{i}]") for i, p in enumerate(raw))
+        object.__setattr__(self, "points_m", pts)
+        legs = len(pts) - 1 + int(bool(self.loop))
+        try:
+            sp = np.atleast_1d(np.asarray(self.speed_m_s, dtype=float))
+            pause = float(self.pause_s)
+        except (TypeError, ValueError):
+            raise ParameterError("trajectory.speed_m_s/pause_s", (self.speed_m_s, self.pause_s),
+                                 "numbers (a speed or one per leg [m/s]; a pause [s])") from None
+        object.__setattr__(self, "pause_s", pause)
+        require(sp.ndim == 1 and len(sp) in (1, legs) and bool(np.all(np.isfinite(sp) & (sp > 0))),
+                "trajectory.speed_m_s", self.speed_m_s,
+                f"a speed > 0 m/s, or one per leg ({legs})")
+        object.__setattr__(self, "speed_m_s", float(sp[0]) if len(sp) == 1 and
+                           np.ndim(self.speed_m_s) == 0 else tuple(float(s) for s in sp))
+        require(np.isfinite(self.pause_s) and self.pause_s >= 0, "trajectory.pause_s",
+                self.pause_s, ">= 0 s")
+        ends = np.asarray(pts + pts[:1] if self.loop else pts)
+        for k in range(legs):
+            require(bool(np.any(ends[k + 1] != ends[k])), f"trajectory.points_m[{(k + 1) % len(pts)}]",
+                    [float(x) for x in ends[k + 1]], "a point different from the waypoint before it")
+
+    def _pieces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Moving legs and pauses in order: start times ``(m,)`` [s] after ``t0_s``,
+        durations ``(m,)`` [s], from and to points ``(m, 3)`` [m] (a pause: from == to)."""
+        pts = np.asarray(self.points_m)
+        ends = np.vstack([pts, pts[:1]]) if self.loop else pts
+        legs = len(ends) - 1
+        sp = np.broadcast_to(np.asarray(self.speed_m_s, dtype=float), (legs,))
+        dur, a, b = [], [], []
+        for k in range(legs):
+            dur.append(float(np.linalg.norm(ends[k + 1] - ends[k])) / sp[k])
+            a.append(ends[k])
+            b.append(ends[k + 1])
+            if self.pause_s > 0 and (self.loop or k < legs - 1):
+                dur.append(self.pause_s)
+                a.append(ends[k + 1])
+                b.append(ends[k + 1])
+        d = np.asarray(dur)
+        return np.concatenate([[0.0], np.cumsum(d)[:-1]]), d, np.asarray(a), np.asarray(b)
+
+    @property
+    def duration_s(self) -> float:
+        """Time from the first waypoint to the last (one round with ``loop``) [s]."""
+        _, d, _, _ = self._pieces()
+        return float(d.sum())
+
+    def _locate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple]:
+        start, dur, a, b = self._pieces()
+        total = float(dur.sum())
+        ph = np.maximum(np.asarray(t, dtype=float) - self.t0_s, 0.0)
+        ph = np.mod(ph, total) if self.loop else np.minimum(ph, total)
+        k = np.clip(np.searchsorted(start, ph, side="right") - 1, 0, len(start) - 1)
+        frac = np.clip((ph - start[k]) / dur[k], 0.0, 1.0)
+        return k, frac, (start, dur, a, b)
+
+    def position(self, t: np.ndarray | float) -> np.ndarray:
+        """Position(s) [m] at times ``t`` [s]: ``shape(t) + (3,)``."""
+        k, frac, (_, _, a, b) = self._locate(np.asarray(t, dtype=float))
+        return a[k] + frac[..., None] * (b[k] - a[k])
+
+    def velocity(self, t: np.ndarray | float) -> np.ndarray:
+        """Velocity [m/s] at ``t`` [s], ``shape(t) + (3,)``: the current leg's (0 while it
+        waits, before ``t0_s`` and after the last waypoint)."""
+        t = np.asarray(t, dtype=float)
+        k, _, (_, dur, a, b) = self._locate(t)
+        v = (b[k] - a[k]) / dur[k][..., None]
+        ph = t - self.t0_s
+        still = (ph < 0) if self.loop else (ph < 0) | (ph >= float(dur.sum()))
+        return np.where(still[..., None], 0.0, v)
+
+
+Trajectory = Fixed | ConstantVelocity | BackAndForth | Waypoints
 
 
 @dataclass(frozen=True)
@@ -587,9 +685,13 @@ def _trajectory_from_dict(d: Mapping[str, Any], where: str) -> Trajectory:
                 return BackAndForth(d["start_m"], d["end_m"], d["speed_m_s"], d.get("t0_s", 0.0))
             return BackAndForth.from_heading(d["start_m"], math.radians(d["heading_deg"]),
                                              d["speed_m_s"], d["length_m"], d.get("t0_s", 0.0))
+        if kind == "waypoints":
+            return Waypoints(d["points_m"], d["speed_m_s"], d.get("pause_s", 0.0),
+                             bool(d.get("loop", False)), d.get("t0_s", 0.0))
     except KeyError as e:
         raise ParameterError(f"{where}.{e.args[0]}", None, f"required for trajectory {kind!r}") from None
-    raise ParameterError(f"{where}.trajectory", kind, "fixed, constant_velocity or back_and_forth")
+    raise ParameterError(f"{where}.trajectory", kind,
+                         "fixed, constant_velocity, back_and_forth or waypoints")
 
 
 _KNOWN = {"name", "description", "sensor", "room", "box", "plane", "wall", "pole", "mover"}

@@ -102,23 +102,23 @@ def mover_truth(scene: Scene, t_s: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     Returns
     -------
     (n_movers, n, 2) positions [m] and (n_movers, n, 2) velocities [m/s]. Velocity by the
-    trajectory's own law (fixed: 0; constant velocity: its vector; back and forth: the
-    current leg's), not by differencing positions.
+    trajectory's own law (fixed: 0; constant velocity: its vector; back and forth and
+    waypoints: the current leg's, 0 while it waits), not by differencing positions.
     """
-    from ..sim.scene import BackAndForth, ConstantVelocity, Fixed
+    from ..sim.scene import BackAndForth, ConstantVelocity, Fixed, Waypoints
 
     t = np.atleast_1d(np.asarray(t_s, float))
     pos, vel = [], []
     for m in scene.movers:
         tr = m.trajectory
         pos.append(np.asarray(tr.position(t))[:, :2])
-        if isinstance(tr, BackAndForth):
+        if isinstance(tr, BackAndForth | Waypoints):
             vel.append(np.asarray(tr.velocity(t))[:, :2])
         elif isinstance(tr, ConstantVelocity):
             vel.append(np.broadcast_to(np.asarray(tr.velocity_m_s)[:2], (len(t), 2)).copy())
         else:
             require(isinstance(tr, Fixed), "trajectory", type(tr).__name__,
-                    "Fixed, ConstantVelocity or BackAndForth")
+                    "Fixed, ConstantVelocity, BackAndForth or Waypoints")
             vel.append(np.zeros((len(t), 2)))
     shape = (len(scene.movers), len(t), 2)
     return np.asarray(pos).reshape(shape), np.asarray(vel).reshape(shape)
