@@ -299,6 +299,50 @@ class _PacingBlob:
         return [np.arange(20)]
 
 
+class _StopGoBlob:
+    """Stub of Segmented: the 20-point blob at 0.5 m/s along +y that stops at scan 20
+    (t = 2 s) and walks on at scan 50 (t = 5 s)."""
+
+    def __init__(self, k):
+        from nodlidar.tracking.scans import ScanPoints
+
+        t = 0.1 * k
+        y = 0.5 * min(t, 2.0) + 0.5 * max(t - 5.0, 0.0)
+        pts = np.random.default_rng(k).normal([2.0, y - 1.5, 0.5], 0.02, (20, 3))
+        n = len(pts)
+        self.scan = ScanPoints(k, np.arange(n), np.full(n, t), np.full(n, -1),
+                               np.ones(n), pts, pts, pts, np.zeros(n))
+
+    def objects(self):
+        return [np.arange(20)]
+
+
+def test_a_track_restarts_its_motion_when_its_object_stops_and_walks_on():
+    # maneuver_m_s: 4 scans after the stop the centroids' velocity (0 m/s) is 0.5 m/s off
+    # the filtered one; the window restarts with the sightings since, and the track reads
+    # the stop (< 0.05 m/s) and, 4 scans after it walks on, its speed (within 0.02 m/s of
+    # 0.5: 20 points of 2 cm noise). Without it (0) the window mixes the two motions until
+    # the turn gate gives way: 0.46 m/s 0.8 s after the stop, and nothing near 0.5 m/s
+    # 0.6 s after it walks on. One track throughout, either way.
+    from nodlidar.tracking.tracker import Tracker, TrackerConfig
+
+    speeds = {}
+    for m in (0.0, 0.3):
+        trk = Tracker(TrackerConfig(maneuver_m_s=m, window_cut_mask="off"))
+        seen, v = set(), {}
+        for k in range(80):
+            for st in trk.update(_StopGoBlob(k)):
+                if st.alive:
+                    seen.add(st.track_id)
+                    v[k] = st.v_m_s
+        assert seen == {1}
+        speeds[m] = v
+    assert speeds[0.3][28] < 0.05 and speeds[0.0][28] > 0.3
+    assert abs(speeds[0.3][56] - 0.5) <= 0.02
+    assert not abs(speeds[0.0][56] - 0.5) <= 0.1  # a speed near 0, or none (NaN)
+    assert abs(speeds[0.3][79] - 0.5) <= 0.01 and abs(speeds[0.0][79] - 0.5) <= 0.01
+
+
 def test_a_coasting_track_is_not_sure_to_move():
     # TrackerConfig.follow_supported_m_s asks for a track surely moving: its speed three
     # sigmas from zero. The velocity's sigma grows while a track coasts unseen (process
