@@ -33,14 +33,18 @@ def test_a_person_seen_once_before_the_blind_part_keeps_the_track(seed, scene_ru
 class _Arcs:
     """Stub of Segmented: scan ``k``, a 40-point arc of a 0.18 m cylinder (facing the
     sensor at the origin) at each of ``movers`` (dynamic clusters, in this order) and of
-    ``still`` (returns that no cluster is dynamic on), or nothing (one beam, no return)."""
+    ``still`` (returns that no cluster is dynamic on), or nothing (one beam, no return).
+    The beams have no geometry: each arc's ends count as window cuts, unless ``outlined``
+    puts a beam with no return on either side of it (its silhouette)."""
 
-    def __init__(self, k: int, movers=(), still=()):
+    def __init__(self, k: int, movers=(), still=(), outlined: bool = False):
         arcs = []
+        gap = np.full((1, 3), np.nan)
         for c in list(movers) + list(still):
             ang = np.linspace(-1.0, 1.0, 40) + np.arctan2(c[1], c[0])
             xy = np.asarray(c) - 0.18 * np.column_stack([np.cos(ang), np.sin(ang)])
-            arcs.append(np.column_stack([xy, np.linspace(0.2, 1.0, 40)]))
+            arc = np.column_stack([xy, np.linspace(0.2, 1.0, 40)])
+            arcs.append(np.concatenate([gap, arc, gap]) if outlined else arc)
         pts = np.concatenate(arcs) if arcs else np.full((1, 3), np.nan)
         n = len(pts)
         t = k * 0.1 + np.linspace(0, 0.09, n)
@@ -48,12 +52,18 @@ class _Arcs:
                                np.where(np.isnan(pts[:, 0]), np.nan, 1.0), pts, pts, pts,
                                np.zeros(n))
         self._n = len(movers)
-        self.cluster = np.repeat(np.arange(len(arcs)), 40) if arcs else np.full(1, -1)
-        self.dynamic = self.cluster < self._n
+        w = 42 if outlined else 40
+        self._first = 1 if outlined else 0
+        lab = np.repeat(np.arange(len(arcs)), w) if arcs else np.full(1, -1)
+        if outlined and arcs:
+            lab[np.isnan(pts[:, 0])] = -1
+        self.cluster = lab
+        self.dynamic = (lab >= 0) & (lab < self._n)
         self.ground = np.zeros(n, bool)
+        self._w = w
 
     def objects(self):
-        return [np.arange(40 * i, 40 * (i + 1)) for i in range(self._n)]
+        return [self._w * i + self._first + np.arange(40) for i in range(self._n)]
 
 
 def _run(scans) -> Tracker:
@@ -219,6 +229,45 @@ def _run_with(scans, **config) -> Tracker:
     for s in scans:
         trk.update(s)
     return trk
+
+
+def _stop_in_the_gap(k_end: int = 38) -> list:
+    """0.7 m/s along +y for 10 scans, nothing for 14 (the nod's blind part), in which it
+    stops 0.21 m on (at scan 12: 0.84 m short of where it would be); then standing
+    there."""
+    seen = [_Arcs(k, [(3.0, -1.0 + 0.07 * k)], outlined=True) for k in range(10)]
+    gap = [_Arcs(k) for k in range(10, 24)]
+    still = [_Arcs(k, [(3.0, -1.0 + 0.07 * 12)], outlined=True) for k in range(24, k_end)]
+    return seen + gap + still
+
+
+def _walk_off_in_the_gap(k_end: int = 45) -> list:
+    """0.4 m/s along +y for 10 scans, standing for 15, nothing for 12, in which it walks
+    off along +x at 1 m/s (from scan 25: 1.2 m on when seen again at scan 37)."""
+    stand = (3.0, -1.0 + 0.04 * 10)
+    seen = [_Arcs(k, [(3.0, -1.0 + 0.04 * k)], outlined=True) for k in range(10)]
+    seen += [_Arcs(k, [stand], outlined=True) for k in range(10, 25)]
+    gap = [_Arcs(k) for k in range(25, 37)]
+    off = [_Arcs(k, [(stand[0] + 0.1 * (k - 25), stand[1])], outlined=True)
+           for k in range(37, k_end)]
+    return seen + gap + off
+
+
+@pytest.mark.parametrize("scans", [_stop_in_the_gap, _walk_off_in_the_gap],
+                         ids=["stopped", "walked off"])
+def test_a_track_lost_while_it_stopped_or_walked_off_is_continued(scans):
+    """``TrackerConfig.stitch_stopped``: a person who stops while the nod looks away is
+    seen again standing on their path, short of every gate of the track; one who stood
+    and walked off unseen, 1.2 m on at 1 m/s. Their paths meet the lost track's, but the
+    speed changed: without it, two tracks (an identity switch in every run of
+    ``benchmarks/heldout/r-stopgo.toml``)."""
+    trk = _run(scans())
+    end = scans()[-1].scan.scan
+    assert sorted(trk.tracks) == [1] and trk.tracks[1].scans[-1] == end
+    assert trk.tracks[1].moved  # still reported as the object it was
+    old = _run_with(scans(), stitch_stopped=False)
+    assert 2 in old.tracks and old.tracks[2].scans[-1] == end  # a new track took it
+    assert 1 not in old.tracks or old.tracks[1].scans[-1] < old.tracks[2].scans[0]
 
 
 def test_a_new_track_whose_motion_does_not_meet_the_lost_one_is_its_own():

@@ -301,20 +301,23 @@ class _PacingBlob:
 
 class _StopGoBlob:
     """Stub of Segmented: the 20-point blob at 0.5 m/s along +y that stops at scan 20
-    (t = 2 s) and walks on at scan 50 (t = 5 s)."""
+    (t = 2 s) and walks on at scan 50 (t = 5 s); a beam with no return on either side (its
+    silhouette: not cut)."""
 
     def __init__(self, k):
         from nodlidar.tracking.scans import ScanPoints
 
         t = 0.1 * k
         y = 0.5 * min(t, 2.0) + 0.5 * max(t - 5.0, 0.0)
-        pts = np.random.default_rng(k).normal([2.0, y - 1.5, 0.5], 0.02, (20, 3))
+        blob = np.random.default_rng(k).normal([2.0, y - 1.5, 0.5], 0.02, (20, 3))
+        pts = np.concatenate([np.full((1, 3), np.nan), blob, np.full((1, 3), np.nan)])
         n = len(pts)
         self.scan = ScanPoints(k, np.arange(n), np.full(n, t), np.full(n, -1),
-                               np.ones(n), pts, pts, pts, np.zeros(n))
+                               np.where(np.isnan(pts[:, 0]), np.nan, 1.0), pts, pts, pts,
+                               np.zeros(n))
 
     def objects(self):
-        return [np.arange(20)]
+        return [np.arange(1, 21)]
 
 
 def test_a_track_restarts_its_motion_when_its_object_stops_and_walks_on():
