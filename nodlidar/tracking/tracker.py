@@ -42,7 +42,11 @@ axis, :class:`~stonesoup.predictor.kalman.KalmanPredictor`,
    A track that took nothing may take the nearest cluster that is not dynamic but has a
    few inconsistent points, fewer than a birth needs (``follow_inconsistent_fraction``).
    A new object that only a lost moving track could be (it turned while unseen, beyond
-   every gate) continues that track once the two motions meet (``stitch_turned_m``).
+   every gate) continues that track once the two motions meet (``stitch_turned_m``; also
+   when it stopped on its way, or stood still and walked off: ``stitch_stopped``). A track
+   whose object stops or starts within its gates (its uncut centroids' speed more than
+   halved or doubled, and its latest sightings' own estimate agreeing) restarts its
+   motion from the sightings since (``maneuver_m_s``).
 
 The measurement of a track in a scan is the ground-plane centroid of its points and, from
 the second scan on, the velocity from the entropy refinement (:func:`refine_motion`, eqs
