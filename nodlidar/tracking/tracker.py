@@ -414,20 +414,28 @@ class TrackerConfig:
     turn_scans : int
         See ``turn_reach_m``.
     maneuver_m_s, maneuver_scans : float, int
-        A track whose object stops, starts or changes its speed within its gates (a
-        person who waits, then walks on) keeps its id but restarts its motion: when the
-        least-squares velocity of its last ``maneuver_scans`` centroids (this one included,
-        all since its motion last started) differs from its filtered velocity by more than
-        ``maneuver_m_s`` [m/s], its window restarts with those sightings and its velocity
-        prior with that of a birth. Without it the window (up to ``window_scans``) mixed
-        the two motions: measured on ``benchmarks/heldout/r-wait-pass.toml``, lifted,
-        seed 0, a person who stopped read 0.49 -> 0.36 m/s over the next 12 scans while
-        its track ran 0.34 m ahead of them, and after walking on read 0.005 -> 0.17 m/s
-        over 12 scans. The threshold: on 88 runs of 22 scenes (seeds 0-1) the centroids'
-        velocity differed from a filtered velocity that was right (within 0.1 m/s) by more
-        than 0.3 m/s at 6 sightings of 4 runs (a driving robot's cut view, crossings), and
-        by more than that at 116 of the 178 sightings where the filter was 0.2 m/s or more
-        off, in 25 of the 26 runs with such sightings. 0: off.
+        A track whose object stops or starts within its gates (a person who waits, then
+        walks on) keeps its id and its confirmation but restarts its motion. Each update
+        fits a line to the centroids of its last ``maneuver_scans`` sightings (this one
+        included, all since its motion last started; of the slices no edge cut - a
+        view's or window's edge, an occluder - in all but one); where against that
+        velocity its filtered speed more than halved or doubled, by more than
+        ``maneuver_m_s`` [m/s], the entropy estimate of its latest ``(maneuver_scans - 1)
+        // 2 + 1`` sightings alone must agree (its speed changed so too, and it lies
+        within ``maneuver_m_s / 2`` of the centroids' velocity); then the window restarts
+        with those sightings and the velocity prior with a birth's. Without it the window
+        (up to ``window_scans``) mixed the two motions: measured on
+        ``benchmarks/heldout/r-wait-pass.toml``, lifted, seed 0, a person who stopped
+        read 0.49 -> 0.36 m/s over the next 12 scans while its track ran 0.34 m ahead of
+        them, and after walking on read 0.005 -> 0.17 m/s over 12 scans. The threshold:
+        on 88 runs of 22 scenes (seeds 0-1) the centroids' velocity differed from a
+        filtered velocity that was right (within 0.1 m/s) by more than 0.3 m/s at 6
+        sightings of 4 runs, and by more than that at 116 of the 178 sightings where the
+        filter was 0.2 m/s or more off, in 25 of the 26 runs with such sightings. Any
+        velocity change on all centroids (the first form) restarted tracks on partial
+        views (a person half hidden, a box leaving the view, a driving robot's angle):
+        70 fewer converged mover-runs with mirrors over the harness (docs/tracking.md
+        "Fifteenth session"). 0: off.
     follow_supported_m_s : float
         A track moving at least this fast (filtered speed [m/s], and at least three
         standard deviations of it from zero: a track that coasted unseen is not sure to
@@ -1569,8 +1577,8 @@ class Tracker:
             self._add(tr, scan, idx, c, t)
             vc = None if (a, bs[0]) in turned else self._maneuvered(tr)
             if vc is not None and self._restarted(tr, vc):
-                # it stopped, started or changed speed: the window restarts with the
-                # sightings since (TrackerConfig.maneuver_m_s)
+                # it stopped or started: the window restarts with the sightings since
+                # (TrackerConfig.maneuver_m_s)
                 prior = self._birth(c, t)
             first = tr.motion is None
             self._estimate(tr)
