@@ -439,6 +439,8 @@ def test_a_waypoints_mover_is_seen_as_the_same_motion_by_the_kernel_law(design):
     ({"speed_m_s": -1.0}, "speed_m_s"),
     ({"speed_m_s": "fast"}, "speed_m_s"),
     ({"pause_s": -1.0}, "pause_s.*>= 0"),
+    ({"loop": "false"}, "loop.*true or false"),  # a string would read as true
+    ({"t0_s": "soon"}, "t0_s"),
 ])
 def test_waypoints_reject_bad_input_by_name(kw, match):
     args = {"points_m": [[0, 0, 0], [1, 0, 0]], "speed_m_s": 1.0, **kw}

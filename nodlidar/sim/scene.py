@@ -494,13 +494,18 @@ class Waypoints:
         pts = tuple(_v3(p, f"trajectory.points_m[{i}]") for i, p in enumerate(raw))
         object.__setattr__(self, "points_m", pts)
         legs = len(pts) - 1 + int(bool(self.loop))
+        require(isinstance(self.loop, bool), "trajectory.loop", self.loop, "true or false")
         try:
             sp = np.atleast_1d(np.asarray(self.speed_m_s, dtype=float))
-            pause = float(self.pause_s)
+            pause, t0 = float(self.pause_s), float(self.t0_s)
         except (TypeError, ValueError):
-            raise ParameterError("trajectory.speed_m_s/pause_s", (self.speed_m_s, self.pause_s),
-                                 "numbers (a speed or one per leg [m/s]; a pause [s])") from None
+            raise ParameterError("trajectory.speed_m_s/pause_s/t0_s",
+                                 (self.speed_m_s, self.pause_s, self.t0_s),
+                                 "numbers (a speed or one per leg [m/s]; a pause, a start "
+                                 "time [s])") from None
+        require(np.isfinite(t0), "trajectory.t0_s", t0, "a finite time [s]")
         object.__setattr__(self, "pause_s", pause)
+        object.__setattr__(self, "t0_s", t0)
         require(sp.ndim == 1 and len(sp) in (1, legs) and bool(np.all(np.isfinite(sp) & (sp > 0))),
                 "trajectory.speed_m_s", self.speed_m_s,
                 f"a speed > 0 m/s, or one per leg ({legs})")
@@ -687,7 +692,7 @@ def _trajectory_from_dict(d: Mapping[str, Any], where: str) -> Trajectory:
                                              d["speed_m_s"], d["length_m"], d.get("t0_s", 0.0))
         if kind == "waypoints":
             return Waypoints(d["points_m"], d["speed_m_s"], d.get("pause_s", 0.0),
-                             bool(d.get("loop", False)), d.get("t0_s", 0.0))
+                             d.get("loop", False), d.get("t0_s", 0.0))
     except KeyError as e:
         raise ParameterError(f"{where}.{e.args[0]}", None, f"required for trajectory {kind!r}") from None
     raise ParameterError(f"{where}.trajectory", kind,
