@@ -286,6 +286,32 @@ def test_confirm_sigmas_asks_the_speed_to_stand_out_of_its_uncertainty():
         TrackerConfig(confirm_sigmas=-1)
 
 
+def test_a_maneuver_is_a_stop_a_start_or_a_turn():
+    """TrackerConfig.maneuver_m_s / maneuver_turn_deg: hand-worked velocities [m/s]."""
+    from nodlidar.tracking.tracker import _speed_changed
+
+    walk = np.array([0.0, -0.5])
+    # a stop and a start: the speed more than halved or doubled, by more than 0.3 m/s
+    assert _speed_changed(np.array([0.0, -0.1]), walk, 0.3)
+    assert _speed_changed(walk, np.array([0.0, -0.1]), 0.3)
+    assert not _speed_changed(np.array([0.0, -0.3]), walk, 0.3)  # slowed, not stopped
+    # a 90 deg turn at the same speed: 0.71 m/s of change, only with a turn angle
+    assert not _speed_changed(np.array([0.5, 0.0]), walk, 0.3)
+    assert _speed_changed(np.array([0.5, 0.0]), walk, 0.3, 40.0)
+    # 45 deg at 0.5 m/s: 2 x 0.5 x sin(22.5 deg) = 0.38 m/s of change
+    diag = 0.5 * np.array([np.sin(np.radians(45)), -np.cos(np.radians(45))])
+    assert _speed_changed(diag, walk, 0.3, 40.0) and not _speed_changed(diag, walk, 0.3, 50.0)
+    # a slow walker's right angle changes the velocity by 0.18 m/s: under the 0.3 m/s
+    assert not _speed_changed(np.array([0.13, 0.0]), np.array([0.0, 0.13]), 0.3, 40.0)
+    # slowed to a quarter and turned (0.400 -> 0.103 m/s, 0.37 m/s of change; a box leaving
+    # the view read so): neither a stop (0.297 m/s less) nor a turn at one speed
+    assert not _speed_changed(np.array([0.048, -0.091]), np.array([-0.257, -0.306]), 0.3, 40.0)
+    # a weave of 11 deg is no turn
+    assert not _speed_changed(np.array([0.1, -0.49]), walk, 0.3, 40.0)
+    with pytest.raises(ParameterError, match="maneuver_turn_deg = 180 .*< 180"):
+        TrackerConfig(maneuver_turn_deg=180)
+
+
 def _labelled(k, blobs, dynamic, inconsistent, supported=None):
     """A real :class:`Segmented` of point blobs: blob ``j`` is cluster ``j``, dynamic when
     ``dynamic[j]``, its first ``inconsistent[j]`` points inconsistent."""

@@ -27,7 +27,9 @@ axis, :class:`~stonesoup.predictor.kalman.KalmanPredictor`,
    track), *confirmed* once seen in ``confirm_scans`` scans and surely moving at
    ``confirm_speed_m_s`` or more (a pole, a table's edge or a person standing still,
    dynamic before static support can judge them, stays tentative); of two tracks updated in the
-   same scan within ``coalesce_m`` of each other (one object followed twice) the younger ends;
+   same scan within ``coalesce_m`` of each other (one object followed twice) the younger ends
+   (not when both were followed six scans or more and the scan saw their objects apart:
+   ``coalesce_seen_apart``);
    a track unseen for more than ``max_missed`` scans ends (the default 25 outlasts the nod's
    blind interval, ~8 scans on the paper's ramp, and one person walking behind another:
    16 scans in ``design/scenes/track-crossing.toml``; the track coasts on its prediction),
@@ -44,9 +46,10 @@ axis, :class:`~stonesoup.predictor.kalman.KalmanPredictor`,
    A new object that only a lost moving track could be (it turned while unseen, beyond
    every gate) continues that track once the two motions meet (``stitch_turned_m``; also
    when it stopped on its way, or stood still and walked off: ``stitch_stopped``). A track
-   whose object stops or starts within its gates (its uncut centroids' speed more than
-   halved or doubled, and its latest sightings' own estimate agreeing) restarts its
-   motion from the sightings since (``maneuver_m_s``).
+   whose object stops, starts or turns within its gates (its uncut centroids' speed more
+   than halved or doubled, or their heading turned at one speed, and its latest sightings'
+   own estimate agreeing) restarts its motion from the sightings since (``maneuver_m_s``,
+   ``maneuver_turn_deg``).
 
 The measurement of a track in a scan is the ground-plane centroid of its points and, from
 the second scan on, the velocity from the entropy refinement (:func:`refine_motion`, eqs
@@ -128,6 +131,17 @@ class TrackerConfig:
     coalesce_m : float
         Of two tracks updated in one scan closer than this [m], the younger ends (below
         the 0.42 m between two people side by side).
+    coalesce_seen_apart : bool
+        Two tracks within ``coalesce_m`` whose clusters of this scan the scan saw apart
+        (:func:`~nodlidar.tracking.segment.seen_apart`) follow two objects: neither ends.
+        Their filtered positions can meet while their objects do not: two people walking
+        towards each other who meet 0.5 m apart and turn to walk on together, each
+        filter carrying its track on past the turn (``benchmarks/heldout/s-meet.toml``:
+        the younger track ended and its person got a new one, an identity switch in 16 of
+        16 runs). Only tracks followed six scans or more each: a piece of one person
+        that a noisy beam split off, seen apart from the rest, is a new track of one
+        sighting, and still ends (``q-pace-cross``, lifted, seed 3: a second track for
+        the person otherwise). False: position alone.
     merge_seen_apart : bool
         Two clusters that the scan saw apart
         (:func:`~nodlidar.tracking.segment.seen_apart`: a ray passed between them, or the
@@ -436,6 +450,17 @@ class TrackerConfig:
         views (a person half hidden, a box leaving the view, a driving robot's angle):
         70 fewer converged mover-runs with mirrors over the harness (docs/tracking.md
         "Fifteenth session"). 0: off.
+    maneuver_turn_deg : float
+        A turn within the gates restarts the motion too: against the centroids' velocity
+        the filtered one changed by more than ``maneuver_m_s`` and its heading by more
+        than this [deg], the speed kept within a factor of two (a speed that fell to a
+        quarter while the heading swung is neither: a box leaving the view read so), and
+        the latest sightings' own estimate agrees, as for a stop. Two people who meet
+        0.5 m apart and turn together to walk on (``design/scenes/track-meet.toml``)
+        stayed within both tracks' gates, each filter carried its track straight on, and
+        the two tracks crossed and swapped people 5 scans after the turn. A slow walker's
+        right angle (0.13 m/s: 0.18 m/s of change) is left to the turn gate
+        (``turn_reach_m``). 0: stops and starts only.
     follow_supported_m_s : float
         A track moving at least this fast (filtered speed [m/s], and at least three
         standard deviations of it from zero: a track that coasted unseen is not sure to
@@ -524,6 +549,7 @@ class TrackerConfig:
     share_m: float = 0.15
     assign_likelihood: bool = True
     coalesce_m: float = 0.25
+    coalesce_seen_apart: bool = True
     merge_seen_apart: bool = True
     merge_hidden_m: float = 0.8
     merge_hidden_extent_m: float = 0.65
@@ -561,6 +587,7 @@ class TrackerConfig:
     turn_scans: int = 3
     maneuver_m_s: float = 0.3
     maneuver_scans: int = 6
+    maneuver_turn_deg: float = 40.0
     incidence_weights: bool = True
     renyi_subsample: str = "pairs"
     renyi_pairs: str = "adaptive"
@@ -629,6 +656,8 @@ class TrackerConfig:
                 self.window_cut_mask, "off, edges or all")
         require(self.turn_scans >= 1, "turn_scans", self.turn_scans, ">= 1")
         require(self.maneuver_m_s >= 0, "maneuver_m_s", self.maneuver_m_s, ">= 0 m/s (0: off)")
+        require(0 <= self.maneuver_turn_deg < 180, "maneuver_turn_deg", self.maneuver_turn_deg,
+                "0 (off) to < 180 deg")
         require(int(self.maneuver_scans) == self.maneuver_scans and self.maneuver_scans >= 3,
                 "maneuver_scans", self.maneuver_scans, "an integer >= 3")
         require(self.window_scans >= 2, "window_scans", self.window_scans, ">= 2")
@@ -692,6 +721,9 @@ _EPOCH = _dt.datetime(2000, 1, 1, tzinfo=_dt.UTC)
 _TAKEN_SCANS = 60  # the online segmenter's window: static support older than it is forgotten
 _BIRTH_SIGMA_V_M_S = 0.5  # velocity sigma of a new track: a person walks at most ~1.5 m/s (3 sigma)
 _SURE_SIGMAS = 3.0  # a track surely moves when its speed is this many sigmas from zero
+# coalesce_seen_apart: tracks followed this many scans each (a piece of one person that a
+# noisy beam split off is a new track of one sighting, and still ends)
+_KEPT_APART_SCANS = 6
 _HOLD_M = 0.15  # hold_seen_apart: a cluster this near a track's prediction holds it
 _WEAK_WIDER_M = 0.1  # follow_inconsistent_fraction: a cluster at most this wider than the last
 #: hold_sliding_lines: a cluster is a line where its top view's minor spread is at most this
@@ -764,11 +796,19 @@ class _Track:
         return np.asarray(self.state.state_vector, float).ravel()[_PERM]
 
 
-def _speed_changed(new: np.ndarray, old: np.ndarray, by_m_s: float) -> bool:
+def _speed_changed(new: np.ndarray, old: np.ndarray, by_m_s: float,
+                   turn_deg: float = 0.0) -> bool:
     """Whether the speed of velocity ``new`` (2,) [m/s] differs from that of ``old`` by
-    more than ``by_m_s`` and by more than a factor of two (a stop or a start)."""
+    more than ``by_m_s`` and by more than a factor of two (a stop or a start), or, with
+    ``turn_deg`` > 0, the velocity by more than ``by_m_s`` and its heading by more than
+    ``turn_deg`` [deg] at a speed kept within a factor of two (a turn)."""
     a, b = float(np.hypot(*new)), float(np.hypot(*old))
-    return abs(a - b) > by_m_s and min(a, b) < 0.5 * max(a, b)
+    if min(a, b) < 0.5 * max(a, b):
+        return abs(a - b) > by_m_s
+    if turn_deg <= 0 or float(np.hypot(*(new - old))) <= by_m_s:
+        return False
+    cos = float(new @ old) / (a * b)
+    return cos < float(np.cos(np.radians(turn_deg)))
 
 
 class Tracker:
@@ -1151,7 +1191,8 @@ class Tracker:
         vc = tt @ (C - C.mean(axis=0)) / s
         # stopped or started: the speed more than halved or doubled (a turn at the same
         # speed fails the gates instead: turn_reach_m)
-        return vc if _speed_changed(vc, tr.x[2:], cfg.maneuver_m_s) else None
+        return vc if _speed_changed(vc, tr.x[2:], cfg.maneuver_m_s,
+                                    cfg.maneuver_turn_deg) else None
 
     def _restarted(self, tr: _Track, vc: np.ndarray) -> bool:
         """Whether ``tr``'s motion restarts with its latest ``(maneuver_scans - 1) // 2 +
@@ -1165,7 +1206,8 @@ class Tracker:
         v = tr.x[2:].copy()
         tr.start, tr.motion = len(tr.scans) - ((cfg.maneuver_scans - 1) // 2 + 1), None
         self._estimate(tr)
-        if tr.motion is not None and _speed_changed(tr.motion.velocity, v, cfg.maneuver_m_s) \
+        if tr.motion is not None and _speed_changed(tr.motion.velocity, v, cfg.maneuver_m_s,
+                                                    cfg.maneuver_turn_deg) \
                 and float(np.hypot(*(tr.motion.velocity - vc))) <= cfg.maneuver_m_s / 2:
             tr.motion = None  # estimated afresh from the new start, as after a turn
             return True
@@ -1564,6 +1606,7 @@ class Tracker:
             births = self._reacquire(seg, ids, births, objs, cents, times, members, priors,
                                      turned, pending)
         changed = []
+        seen_idx: dict[int, np.ndarray] = {}  # each track's points of this scan
         for a, bs in members.items():
             tr = self.tracks[ids[a]]
             if (a, bs[0]) in turned:
@@ -1610,6 +1653,7 @@ class Tracker:
                     # the new track ends, never confirmed: the lost one goes on
                     changed.append(replace(self._state(tr, alive=False), confirmed=False))
                     tr = parent
+            seen_idx[tr.track_id] = idx
             changed.append(self._state(tr))
         # new clusters within merge_m of each other are pieces of one new object
         groups: list[list[int]] = []
@@ -1633,6 +1677,7 @@ class Tracker:
                 tr.parent = pending[g[0]]
             self._add(tr, scan, idx, c, t)
             tr.state = self._birth(c, t)
+            seen_idx[tr.track_id] = idx
             st = self._state(tr)
             changed.append(st)
         # a track's path: the dynamic clusters it took once static support could judge
@@ -1652,7 +1697,11 @@ class Tracker:
             for t2 in now[i + 1:]:
                 if t1.track_id not in self.tracks or t2.track_id not in self.tracks:
                     continue
-                if float(np.hypot(*(t1.x[:2] - t2.x[:2]))) <= cfg.coalesce_m:
+                if float(np.hypot(*(t1.x[:2] - t2.x[:2]))) <= cfg.coalesce_m and not (
+                        cfg.coalesce_seen_apart
+                        and min(len(t1.scans), len(t2.scans)) >= _KEPT_APART_SCANS
+                        and t1.track_id in seen_idx and t2.track_id in seen_idx
+                        and seen_apart(scan, seen_idx[t1.track_id], seen_idx[t2.track_id])):
                     young = t2 if len(t2.scans) < len(t1.scans) or (
                         len(t2.scans) == len(t1.scans) and t2.track_id > t1.track_id) else t1
                     del self.tracks[young.track_id]
