@@ -312,6 +312,34 @@ def test_a_maneuver_is_a_stop_a_start_or_a_turn():
         TrackerConfig(maneuver_turn_deg=180)
 
 
+def test_a_maneuvers_estimate_confirms_the_centroids_lagging_line_fit():
+    """Tracker._restarted's agreement test (``_agrees``), on velocities [m/s] measured in
+    ``benchmarks/heldout/s-meet-stop.toml``, ``v-pacers.toml`` and
+    ``design/scenes/track-edge-box.toml``, ``track-edge-box-away.toml``."""
+    from nodlidar.tracking.tracker import _agrees
+
+    def agrees(est, vc, v):
+        return _agrees(np.array(est), np.array(vc), np.array(v), 0.15, 0.05)
+
+    # a person walking off from standing (lifted, seed 0): the six centroids' line reads
+    # 0.31 m/s (the start 3 sightings ago: 0.63 of it), the latest three sightings 0.52;
+    # 0.21 m/s apart, beyond the 0.15 tolerance, but along the same change and 1.7 x as
+    # far from the standing track's velocity
+    assert agrees([0.518, 0.0], [0.312, 0.01], [0.001, 0.001])
+    # a pacer's reversal at one speed (lifted, seed 3): the line reads -0.09 m/s mid-turn
+    assert agrees([-0.044, -0.665], [0.006, -0.091], [-0.002, 0.593])
+    # a box leaving the view (lifted, seed 0): centroids and points both read its 0.40
+    # m/s doubled; a change of speed while moving is not taken beyond the tolerance
+    assert not agrees([-0.736, -0.948], [-0.685, -0.669], [-0.257, -0.306])
+    # the box's face at the top of the nod (lifted, seed 0): 1.0 m/s for 0.41
+    assert not agrees([-0.591, -0.807], [-0.005, -0.044], [0.264, 0.319])
+    # within the tolerance, whatever the direction; the other way, never
+    assert agrees([0.40, 0.1], [0.31, 0.0], [0.0, 0.0])
+    assert not agrees([-0.5, 0.0], [0.31, 0.0], [0.0, 0.0])
+    # 45 deg off the centroids' change: not the same change
+    assert not agrees([0.35, 0.35], [0.31, 0.0], [0.0, 0.0])
+
+
 def _labelled(k, blobs, dynamic, inconsistent, supported=None):
     """A real :class:`Segmented` of point blobs: blob ``j`` is cluster ``j``, dynamic when
     ``dynamic[j]``, its first ``inconsistent[j]`` points inconsistent."""
