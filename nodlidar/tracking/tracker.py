@@ -448,7 +448,9 @@ class TrackerConfig:
         velocity its filtered speed more than halved or doubled, by more than
         ``maneuver_m_s`` [m/s], the entropy estimate of its latest ``(maneuver_scans - 1)
         // 2 + 1`` sightings alone must agree (its speed changed so too, and it lies
-        within ``maneuver_m_s / 2`` of the centroids' velocity); then the window restarts
+        within ``maneuver_m_s / 2`` of the centroids' velocity, or for a start from
+        standing or a turn at one speed beyond it along the same change, up to twice as
+        far: the line fit lags a change it spans in part); then the window restarts
         with those sightings and the velocity prior with a birth's. Without it the window
         (up to ``window_scans``) mixed the two motions: measured on
         ``benchmarks/heldout/r-wait-pass.toml``, lifted, seed 0, a person who stopped
@@ -1255,7 +1257,8 @@ class Tracker:
         """Whether ``tr``'s motion restarts with its latest ``(maneuver_scans - 1) // 2 +
         1`` sightings (this one added): their own entropy estimate confirms the
         centroids' velocity ``vc`` (:meth:`_maneuvered`): its speed too changed against
-        the filtered one, and it is within ``maneuver_m_s / 2`` of ``vc``. A centroid
+        the filtered one, and it is within ``maneuver_m_s / 2`` of ``vc``, or beyond it
+        where the line fit lags a start or a turn (:func:`_agrees`). A centroid
         also moves when the part of the object seen changes (a box's face as the nod
         passes its top); the points' motion does not. If not, ``tr`` is as it was."""
         cfg = self.config
