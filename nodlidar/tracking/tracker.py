@@ -136,9 +136,12 @@ class TrackerConfig:
         (:func:`~nodlidar.tracking.segment.seen_apart`) follow two objects: neither ends.
         Their filtered positions can meet while their objects do not: two people walking
         towards each other who meet 0.5 m apart and turn to walk on together, each
-        filter carrying its track on past the turn (``benchmarks/heldout/s-meet.toml``:
-        the younger track ended and its person got a new one, an identity switch in 16 of
-        16 runs). Only tracks followed six scans or more each: a piece of one person
+        filter carrying its track on past the turn (``design/scenes/track-meet.toml``:
+        the younger track ended and its person got a new one; measured without it, seeds
+        0-7, mirrors / lifted, 8 / 8 switches before ``maneuver_turn_deg``'s restart
+        took the lagging line fit (:func:`_agrees`), 0 / 5 after, and over the meeting
+        scenes of ``benchmarks/heldout`` with it 9 / 10 against 2 / 4). Only tracks
+        followed six scans or more each: a piece of one person
         that a noisy beam split off, seen apart from the rest, is a new track of one
         sighting, and still ends (``q-pace-cross``, lifted, seed 3: a second track for
         the person otherwise). False: position alone.
