@@ -141,10 +141,10 @@ class TrackerConfig:
         0-7, mirrors / lifted, 8 / 8 switches before ``maneuver_turn_deg``'s restart
         took the lagging line fit (:func:`_agrees`), 0 / 5 after, and over the meeting
         scenes of ``benchmarks/heldout`` with it 9 / 10 against 2 / 4). Only tracks
-        followed six scans or more each: a piece of one person
-        that a noisy beam split off, seen apart from the rest, is a new track of one
-        sighting, and still ends (``q-pace-cross``, lifted, seed 3: a second track for
-        the person otherwise). False: position alone.
+        followed six scans or more each: a piece of one person that a noisy beam split
+        off, seen apart from the rest, is a new track of one sighting, and still ends
+        (``q-pace-cross``, lifted, seed 3: a second track for the person otherwise).
+        False: position alone.
     merge_seen_apart : bool
         Two clusters that the scan saw apart
         (:func:`~nodlidar.tracking.segment.seen_apart`: a ray passed between them, or the
@@ -373,11 +373,10 @@ class TrackerConfig:
         from its motion window when it has this many since, if their own entropy
         estimate differs from its velocity by more than ``maneuver_m_s / 2``: that one
         sighting only started the velocity, and it may have been another object moving
-        with this one
-        (``benchmarks/heldout/s-push.toml``, mirrors, seed 3: a person seen once, then
-        the trolley they pushed ahead of them re-acquired the track after the nod's blind
-        part; with the person's points in its window the trolley read 0.085 m/s fast to
-        the end of the run, 39 scans later). Unconditional, it cost correct
+        with this one (``benchmarks/heldout/s-push.toml``, mirrors, seed 3: a person seen
+        once, then the trolley they pushed ahead of them re-acquired the track after the
+        nod's blind part; with the person's points in its window the trolley read 0.085
+        m/s fast to the end of the run, 39 scans later). Unconditional, it cost correct
         re-acquisitions their long baseline (the 0.8 m box converged 11 scans later with
         mirrors, median of seeds 0-7). 0: never.
     reacquire_gone_only : bool
@@ -1214,12 +1213,12 @@ class Tracker:
         return [b for b in births if b not in got]
 
     def _forget_before_gap(self, tr: _Track) -> None:
-        """Whether ``tr``, re-acquired after a gap (``reacquire_births_m_s``), drops its
-        sighting before the gap from its motion window: the entropy estimate of the
-        sightings since alone differs from its filtered velocity by more than
-        ``maneuver_m_s / 2`` (the one sighting before, that only started the velocity, was
-        another object, or the same one at another speed; ``reacquire_forget_scans``). If
-        not, ``tr`` is as it was (the long baseline kept)."""
+        """Drop the sighting before the gap from the motion window of ``tr``, re-acquired
+        after it (``reacquire_births_m_s``), if the entropy estimate of the sightings since
+        alone differs from its filtered velocity by more than ``maneuver_m_s / 2``: the one
+        sighting before, that only started the velocity, was another object, or the same
+        one at another speed (``reacquire_forget_scans``). Else ``tr`` is left as it was
+        (the long baseline kept)."""
         before = (tr.start, tr.motion, tr.coarse)
         v = tr.x[2:].copy()
         tr.start, tr.motion = tr.reacquired, None
@@ -1235,8 +1234,9 @@ class Tracker:
         ``maneuver_scans`` sightings (this one added), all since its motion last started,
         of the slices no edge cut (a view's or window's edge, an occluder: an object seen
         in part moves its centroid), in all but one of them; if against it ``tr``'s speed
-        more than halved or doubled, by more than ``maneuver_m_s`` (:class:`TrackerConfig`).
-        Else None."""
+        more than halved or doubled, by more than ``maneuver_m_s``, or its heading turned
+        by more than ``maneuver_turn_deg`` at one speed (:class:`TrackerConfig`). Else
+        None."""
         cfg = self.config
         m = int(cfg.maneuver_scans)
         if cfg.maneuver_m_s <= 0 or tr.motion is None or len(tr.scans) - tr.start < m:
@@ -1251,8 +1251,8 @@ class Tracker:
         if s <= 0:
             return None
         vc = tt @ (C - C.mean(axis=0)) / s
-        # stopped or started: the speed more than halved or doubled (a turn at the same
-        # speed fails the gates instead: turn_reach_m)
+        # stopped or started: the speed more than halved or doubled; or turned at one
+        # speed (maneuver_turn_deg; a turn beyond the gates is turn_reach_m's)
         return vc if _speed_changed(vc, tr.x[2:], cfg.maneuver_m_s,
                                     cfg.maneuver_turn_deg) else None
 
