@@ -155,6 +155,54 @@ def test_cut_lines_that_leave_no_pair_across_time_are_ignored():
     assert est.v_m_s < 1.0, est.v_m_s  # the person walks at 0.5 m/s
 
 
+def test_a_warm_refinement_that_runs_off_is_replaced_by_a_cold_one():
+    # The tracker's window at one scan of the simulator (tests/data: grid 0.6 m/s x 89.4
+    # deg, mirrors, seed 6, scan 66, during this session's work): a person who turned
+    # back in the nod's blind part, seen once before it (scans 53, 54) and once after
+    # (66). Warm from the filtered velocity, 0.5 m/s off the motion, no pair of points near
+    # it spans the gap, the cost is flat and the minimiser ran off to 169 m/s; cold, from
+    # the centroid line, the window reads the person's 0.6 m/s (truth: 0.6 m/s, -90.6 deg
+    # after the turn).
+    from pathlib import Path
+
+    from nodlidar.tracking.motion import coarse_motion
+    from nodlidar.tracking.tracker import TrackerConfig, _refine_window
+
+    d = np.load(Path(__file__).parent / "data" / "renyi_warm_runoff.npz")
+    P, T = d["points"], d["t_s"]
+    kw = dict(sigma_m=0.02, renyi_method="newton", renyi_subsample="pairs", max_points=300,
+              labels=d["labels"], weights=d["weights"], n_scans=int(d["n_scans"]))
+    warm = MotionEstimate(*motion_from_velocity(d["warm_velocity"]))
+    assert refine_motion(P, T, warm, search_m_s=0.03, **kw).v_m_s > 100.0  # the run-off
+    scans = np.unique(np.round(T, 1))
+    C = np.array([P[np.round(T, 1) == s, :2].mean(axis=0) for s in scans])
+    Tc = np.array([T[np.round(T, 1) == s].mean() for s in scans])
+    coarse = coarse_motion(C, Tc)
+    mo = _refine_window(P, T, warm, coarse, TrackerConfig(), **kw)
+    assert mo is not None
+    # 0.02 m/s and 3 deg: one window of two sightings 1.3 s apart, 1 cm range noise
+    assert_allclose(mo.velocity, [0.0066, -0.6], atol=0.02)
+    assert abs(np.degrees(mo.heading_rad) + 90.6) < 3.0
+    # no bound: the run-off is the measurement; a bound below any start: none at all
+    off = _refine_window(P, T, warm, coarse, TrackerConfig(max_speed_m_s=np.inf), **kw)
+    assert off.v_m_s > 100.0
+    assert _refine_window(P, T, warm, coarse, TrackerConfig(max_speed_m_s=0.1), **kw) is None
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_person_entering_the_view_whose_foot_meets_the_floor_converges_sooner(
+        seed, scene_runs):
+    # design/scenes/track-entering-view.toml with mirrors: the nod's low scans meet the
+    # floor's height at the person's foot (scans 18-23), and those slices end at the
+    # floor's line, fixed in the sensor. Measured, seeds 0-3: convergence scan 26, 28, 26,
+    # 25 without the floor's cut, 16, 15, 17, 16 with it. Asserted: at least 6 scans
+    # sooner, one track each.
+    on = scene_runs("track-entering-view.toml", 45, seed, True)
+    off = scene_runs("track-entering-view.toml", 45, seed, True, window_cut_floor=False)
+    scene_runs.assert_kept(on)
+    scene_runs.assert_kept(off)
+    assert on["P"]["conv_scan"] + 6 <= off["P"]["conv_scan"], (on, off)
+
 @pytest.mark.parametrize("seed", [0, 4])
 def test_a_person_entering_the_mirrors_view_converges_sooner_comparing_what_both_scans_saw(
         seed, scene_runs):
@@ -208,6 +256,61 @@ def test_a_person_overtaking_the_robot_is_crossed_at_the_speed_relative_to_it(se
     on = scene_runs("track-overtaking-robot.toml", 45, seed, True)
     scene_runs.assert_kept(on)
     assert on["P"]["conv_scan"] <= 20, on
+
+
+def _pitched_fan(x_m, pitch_deg=9.65, height_m=0.4, start_deg=-20.0, step_deg=0.5):
+    """One scan of a nodding lidar pitched down by ``pitch_deg`` at ``height_m``: beams
+    every ``step_deg`` in the tilted scan plane, each returning where its ray reaches the
+    top-view distance ``x_m`` along the sensor's axis (the plane meets any height ``z`` on
+    the line ``x = (height - z) / tan(pitch)``)."""
+    x_m = np.asarray(x_m, float)
+    n = len(x_m)
+    b = np.radians(start_deg + step_deg * np.arange(n))
+    p = np.radians(pitch_deg)
+    d = np.column_stack([np.cos(p) * np.cos(b), np.sin(b), -np.sin(p) * np.cos(b)])
+    start = np.tile([0.0, 0.0, height_m], (n, 1))
+    rng_m = x_m / d[:, 0]
+    return ScanPoints(0, np.arange(n), np.zeros(n), np.full(n, -1), rng_m,
+                      start + d * rng_m[:, None], start, d, np.zeros(n))
+
+
+def test_where_the_scan_line_meets_the_floor_the_slice_is_cut():
+    """A face running away from the sensor meets the floor's height within the scan: the
+    beams beyond return from the face's foot (below the ground clearance, removed with
+    the floor), so the slice ends at a line fixed in the sensor for this scan - the
+    line ``x = (h - z_floor) / tan(pitch)`` where the tilted scan plane crosses that
+    height - not at the face's outline. A floor return *farther* than the slice (the
+    beam passed beside the object) is the outline, no cut."""
+    h, pitch, z_floor = 0.4, 9.65, 0.06
+    x_cut = (h - z_floor) / np.tan(np.radians(pitch))  # 2.0 m
+    x = np.full(60, h / np.tan(np.radians(pitch)))  # the floor itself (z = 0), 2.35 m
+    x[10:50] = 1.8 + 0.01 * np.arange(40)  # the face: 1.80 .. 2.19 m along the axis
+    s = _pitched_fan(x, pitch, h)
+    assert_allclose(s.points[:, 2][x == x[0]], 0.0, atol=1e-12)
+    idx = np.flatnonzero((x < 2.3) & (s.points[:, 2] >= z_floor))  # what the segmentation keeps
+    assert idx.min() == 10 and s.points[idx.max() + 1, 2] < z_floor
+    e = cut_edges(s, idx, reach_m=0.05, floor_z_m=z_floor)
+    assert_allclose(np.isfinite(e[:, 0, 0]), window_cut(s, idx, reach_m=0.05, floor_z_m=z_floor))
+    assert np.isfinite(e[:, 0, 0]).all() and not np.isfinite(e[:, 1]).any()  # one end cut
+    a, d, side, occ = e[0, 0, :2], e[0, 0, 2:4], e[0, 0, 4], e[0, 0, 5]
+    # the line is x = x_cut (direction along y), a window-like cut (not an occluder)
+    assert_allclose(a[0], x_cut, atol=1e-9)
+    assert_allclose(abs(d[1]), 1.0, atol=1e-9)
+    assert occ == 0.0
+    # the slice lies on its seen side, the foot beyond the line on the other
+    cross = lambda p: d[0] * (p[:, 1] - a[1]) - d[1] * (p[:, 0] - a[0])  # noqa: E731
+    assert np.all(side * cross(s.points[idx, :2]) > 0)
+    assert np.all(side * cross(s.points[idx.max() + 1:50, :2]) < 0)
+    # without the floor's height the foot is the same surface and the face's far end an
+    # outline (a farther return): no cut, as before
+    assert not np.isfinite(cut_edges(s, idx, reach_m=0.05)).any()
+    # the low end's neighbour is the floor too, but farther: the outline, no cut - also
+    # when the face itself stays above the floor's height
+    x2 = x.copy()
+    x2[10:50] = 1.8
+    s2 = _pitched_fan(x2, pitch, h)
+    assert not np.isfinite(cut_edges(s2, np.arange(10, 50), reach_m=0.05,
+                                     floor_z_m=z_floor)).any()
 
 
 def test_silhouette_ends_are_the_slices_outline_only():

@@ -512,9 +512,13 @@ class TrackerConfig:
         cut pulls nothing, and the pull grows with the speed across it (measured: ~5 % of
         it; a person entering three mirror windows at 0.42 m/s across them read 0.016 m/s
         slow and 2 deg off, noise-free). Where ``v_across >= window_cut_drop_m_s`` the
-        slice is left out (both entropies), once the slices left span two scans of the
-        window. Leaving every cut slice out instead starved slow movers (0.05 m/s at 45
-        deg: convergence scan 20 -> 35 with mirrors, lifted 20). ``inf``: cut slices
+        slice is left out (both entropies), once the slices left are most of the window's
+        points and a cluster's worth (``SegmentConfig.min_cluster_points``) in two of its
+        scans: a person entering the view is cut in every slice, and its 3-4 points per
+        scan left read 45 deg off (``benchmarks/heldout/q-near.toml``, mirrors, seed 0,
+        scan 8; converged at scan 17 -> 16, median of seeds 0-7). Leaving every cut
+        slice out instead starved slow movers (0.05 m/s at 45 deg: convergence scan
+        20 -> 35 with mirrors, lifted 20). ``inf``: cut slices
         weigh as any other / are never left out. docs/tracking.md "Slices cut by a
         window's edge". 0.4 m/s since the occluder cuts below (0.5 before: a walker
         0.42 m/s across the windows kept its biased cut slices).
@@ -547,6 +551,24 @@ class TrackerConfig:
         (lifted 6). ``"all"`` lost slow movers half hidden by a neighbour (side by side at
         0.13 m/s, right: 3 of 8 seeds converged). docs/tracking.md "Comparing only what
         both scans could see".
+    window_cut_floor : bool
+        The floor cuts slices too (:func:`~nodlidar.tracking.segment.cut_edges`
+        ``floor_z_m``, the segmentation's ``ground_z_m + ground_clearance_m``): where the
+        nodding scan line meets the floor's height at an object's foot, the beams beyond
+        reach the floor first and the slice ends at the line where the scan crosses that
+        height - fixed in the sensor for that scan, like a window's edge, and weighed,
+        left out and masked as one (the speed across it: across that line). Measured,
+        seeds 0-3, with mirrors: a person 0.8 m to the side walking away into the view
+        converged at scan 25-28 without, 15-17 with (the window's last scans met the floor
+        at its foot and read 7 % slow, noise-free). docs/tracking.md "Slices cut by the
+        floor".
+    max_speed_m_s : float
+        A refinement faster than this [m/s] is no motion but the minimiser run off where
+        the cost is flat (no pair of points near the start spans two scans): the warm
+        start is dropped for a cold one from the centroids, and if that runs off too the
+        scan gives no velocity measurement. Measured: 169 m/s, warm-started from a wrong
+        velocity after a mover turned in the nod's blind part. 5 m/s is above a running
+        person's speed.
     incidence_weights : bool
         Rényi only: weight each point by ``1 / cos(incidence)`` (:func:`incidence_weights`)
         so the entropy counts surface, not beam density (default; docs/tracking.md "Fast
@@ -621,6 +643,8 @@ class TrackerConfig:
     window_cut_reach_m: float = 0.05
     window_cut_occluders: bool = True
     window_cut_mask: str = "edges"
+    window_cut_floor: bool = True
+    max_speed_m_s: float = 5.0
 
     def __post_init__(self) -> None:
         require(self.confirm_scans >= 2, "confirm_scans", self.confirm_scans, ">= 2")
@@ -674,6 +698,8 @@ class TrackerConfig:
                 ">= 0 m (0: the cluster's own ends)")
         require(self.window_cut_mask in ("off", "edges", "all"), "window_cut_mask",
                 self.window_cut_mask, "off, edges or all")
+        require(self.max_speed_m_s > 0, "max_speed_m_s", self.max_speed_m_s,
+                "> 0 m/s (inf: any estimate is a measurement)")
         require(self.turn_scans >= 1, "turn_scans", self.turn_scans, ">= 1")
         require(self.maneuver_m_s >= 0, "maneuver_m_s", self.maneuver_m_s, ">= 0 m/s (0: off)")
         require(0 <= self.maneuver_turn_deg < 180, "maneuver_turn_deg", self.maneuver_turn_deg,
@@ -782,7 +808,7 @@ class _Track:
     mirrors: list = field(default_factory=list)
     truth: list = field(default_factory=list)
     weights: list = field(default_factory=list)
-    cut: list = field(default_factory=list)  # per scan, (k,): beam bearing if window_cut, else NaN
+    cut: list = field(default_factory=list)  # per scan, (k, 2): each cut line's bearing, or NaN
     edges: list = field(default_factory=list)  # per scan, (k, 2, 6): segment.cut_edges
     sensor_v: list = field(default_factory=list)  # per scan, (2,): the sensor's velocity
     # per scan, (j,): the top-view lengths [m] of the slices with both ends the object's
@@ -854,6 +880,29 @@ def _agrees(est: np.ndarray, vc: np.ndarray, v: np.ndarray, tol_m_s: float,
     return nc > 0 and nc <= ne <= 2.0 * nc and float(dc @ de) >= np.cos(np.radians(30.0)) * nc * ne
 
 
+def _refine_window(P: np.ndarray, Tp: np.ndarray, warm: MotionEstimate | None,
+                   coarse: MotionEstimate, cfg: TrackerConfig,
+                   **kw: Any) -> MotionEstimate | None:
+    """A track window's velocity measurement: the entropy refinement of its points ``P``
+    (n, 3) [m] at times ``Tp`` (n,) [s], warm from the previous one ``warm`` (a small
+    search around it) or cold from the centroid line ``coarse``; ``kw`` the rest of
+    :func:`~nodlidar.tracking.motion.refine_motion`'s arguments.
+
+    A result faster than ``cfg.max_speed_m_s`` is the minimiser run off, not motion: the
+    warm start was so far from the motion that no pair of points near it spans two scans
+    and the cost was flat (169 m/s measured, warm from a wrong velocity after a mover
+    turned in the nod's blind part). The warm result is then replaced by a cold one, and
+    if that runs off too there is no measurement (None).
+    """
+    mo = None
+    if warm is not None:
+        mo = refine_motion(P, Tp, warm, search_m_s=cfg.warm_search_m_s,
+                           voxel_grid=cfg.warm_voxel_grid, **kw)
+    if mo is None or not mo.v_m_s <= cfg.max_speed_m_s:
+        mo = refine_motion(P, Tp, coarse, search_m_s=0.08, **kw)
+    return mo if mo.v_m_s <= cfg.max_speed_m_s else None
+
+
 class Tracker:
     """Multi-object tracker over segmented scans (module docstring).
 
@@ -885,6 +934,8 @@ class Tracker:
         seg_cfg = segment or SegmentConfig()
         self._grid = VoxelGrid(seg_cfg.voxel_m)
         self._static_age_s = seg_cfg.static_age_s
+        self._min_cluster_points = seg_cfg.min_cluster_points
+        self._floor_z_m = seg_cfg.ground_z_m + seg_cfg.ground_clearance_m
         # per recent scan: its time [s] and the voxel keys of the points tracks took
         # (follow_supported_m_s: was a supported cluster's support a track's own path?)
         self._taken: list[tuple[float, np.ndarray]] = []
@@ -1480,18 +1531,26 @@ class Tracker:
         P = np.concatenate(tr.points[w0:])
         Tp = np.concatenate(tr.times[w0:])
         # slices cut by a window's edge weigh less the faster the track moves across the
-        # cut's beam, and are left out when it moves fast across it, once the rest spans
+        # cut's line, and are left out when it moves fast across it, once the rest spans
         # two scans (TrackerConfig.window_cut_speed_m_s, window_cut_drop_m_s)
         v = tr.x[2:] if tr.motion is not None else coarse.v_m_s * np.array(
             [np.cos(coarse.heading_rad), np.sin(coarse.heading_rad)])
-        # across the cut beam, which moves with the sensor: relative to the sensor's velocity
-        across = [np.abs((v[0] - u[0]) * np.sin(b) - (v[1] - u[1]) * np.cos(b))
-                  for b, u in zip(tr.cut[w0:], tr.sensor_v[w0:])]
-        out = [a >= cfg.window_cut_drop_m_s for a in across]  # NaN (uncut): False
+        # across each cut line (a beam's ray, or the floor's line along the scan), which
+        # moves with the sensor: relative to the sensor's velocity; per point the fastest
+        across_lines = np.concatenate(
+            [np.abs((v[0] - u[0]) * np.sin(b) - (v[1] - u[1]) * np.cos(b))
+             for b, u in zip(tr.cut[w0:], tr.sensor_v[w0:])])
+        across = np.fmax(across_lines[:, 0], across_lines[:, 1])  # NaN: uncut
+        sizes = [len(b) for b in tr.cut[w0:]]
+        out = np.split(across >= cfg.window_cut_drop_m_s, np.cumsum(sizes)[:-1])
         keep = ~np.concatenate(out)
-        if sum(bool(np.any(~o)) for o in out) < 2:
+        # left out only when what is left carries the estimate: most of the window's
+        # points, a cluster's worth in two scans. An object entering the view is cut in
+        # every slice; its few uncut points per scan gave a velocity of noise (45 deg off)
+        if (2 * np.count_nonzero(keep) < len(keep)
+                or sum(int(np.count_nonzero(~o)) >= self._min_cluster_points for o in out) < 2):
             keep[:] = True
-        a = np.concatenate(across)[keep]
+        a = across[keep]
         cut_w = np.where(np.isnan(a), 1.0,
                          np.minimum(1.0, cfg.window_cut_speed_m_s / np.maximum(a, 1e-9)))
         P, Tp = P[keep], Tp[keep]
@@ -1513,21 +1572,16 @@ class Tracker:
             # only slices the track crosses at window_cut_speed_m_s or more: slower, a
             # cut pulls little and its weight is 1
             edges = np.concatenate(tr.edges[w0:])[keep]
-            edges[~(a >= cfg.window_cut_speed_m_s)] = np.nan
+            edges[~(across_lines[keep] >= cfg.window_cut_speed_m_s)] = np.nan
         # warm start from the previous refinement (a small search around it), cold from the
         # centroid line: keeps one update well inside the scan period
-        warm = tr.motion is not None
-        guess = tr.motion if tr.motion is not None else coarse
-        warm_grid: dict[str, Any] = {"voxel_grid": cfg.warm_voxel_grid} if warm else {}
-        tr.motion = refine_motion(P, Tp, guess, entropy=cfg.entropy,
-                                  sigma_m=cfg.sigma_m, voxel_m=cfg.voxel_m, n_scans=n_seg,
-                                  max_points=cfg.max_points,
-                                  renyi_method=cfg.renyi_method,
+        kw: dict[str, Any] = dict(entropy=cfg.entropy, sigma_m=cfg.sigma_m,
+                                  voxel_m=cfg.voxel_m, n_scans=n_seg,
+                                  max_points=cfg.max_points, renyi_method=cfg.renyi_method,
                                   renyi_subsample=cfg.renyi_subsample,
                                   voxel_max_points=cfg.voxel_max_points, labels=lab,
-                                  weights=wts, edges=edges,
-                                  search_m_s=cfg.warm_search_m_s if warm else 0.08,
-                                  **warm_grid)
+                                  weights=wts, edges=edges)
+        tr.motion = _refine_window(P, Tp, tr.motion, coarse, cfg, **kw)
 
     def _segmented(self, scan: Segmented | ScanPoints) -> Segmented:
         if hasattr(scan, "objects"):  # already segmented (duck-typed, as before)
@@ -1825,11 +1879,11 @@ class Tracker:
                           if self.config.incidence_weights and self.config.entropy == "renyi"
                           else None)
         tr.truth.append(None if scan.truth_id is None else scan.truth_id[idx])
-        d = scan.ray_dir[idx]
         cfg = self.config
-        edges = cut_edges(scan, idx, cfg.window_cut_reach_m, cfg.window_cut_occluders)
+        edges = cut_edges(scan, idx, cfg.window_cut_reach_m, cfg.window_cut_occluders,
+                          floor_z_m=self._floor_z_m if cfg.window_cut_floor else -np.inf)
         cut = np.isfinite(edges[:, 0, 0])
-        tr.cut.append(np.where(cut, np.arctan2(d[:, 1], d[:, 0]), np.nan))
+        tr.cut.append(np.arctan2(edges[:, :, 3], edges[:, :, 2]))  # NaN where no line
         tr.centroids_uncut.append(pts[~cut, :2].mean(axis=0) if np.count_nonzero(~cut) >= 3
                                   else np.full(2, np.nan))
         u = getattr(scan, "sensor_velocity_m_s", None)  # duck-typed scans may lack it
