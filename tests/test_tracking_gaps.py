@@ -324,3 +324,28 @@ def test_a_reacquired_track_forgets_its_sighting_before_the_gap():
     assert off[28] > 0.8 and off[30] > 0.75  # the failure: the gap's speed lingers
     with pytest.raises(ParameterError, match="reacquire_forget_scans = -1"):
         TrackerConfig(reacquire_forget_scans=-1)
+
+
+def test_side_by_side_seen_twice_before_the_blind_part_is_decided_by_the_new_motions(
+        scene_runs):
+    """``TrackerConfig.ambiguous_chi2``: ``design/scenes/track-side-by-side-blind.toml``
+    (two people 0.42 m apart walking side by side towards the sensor), mirrors, seed 5.
+    The right person is seen in scans 7 and 8 before the nod's blind part, with a velocity
+    15 deg off towards the left one (0.49 m/s, sd 0.11 m/s). Predicted 1.8 s on, both
+    people are about equally likely: costs 4.16 (left) and 4.35 (right), measured. Taken
+    by the cost, the track went to the left person and the right one got a new track (an
+    identity switch). Left to the two new tracks' own motions (:meth:`Tracker._stitch`),
+    the one whose path meets the lost track's nearer continues it: the right person."""
+    on = scene_runs("track-side-by-side-blind.toml", 50, 5, True)
+    assert on["R"]["id_switches"] == 0 and on["L"]["id_switches"] == 0, on
+    assert on["R"]["conv"] is not None and on["L"]["conv"] is not None, on
+    # the right person's first track is the one it had before the blind part: the left
+    # person's is another
+    assert min(on["R"]["tracks"]) < min(on["L"]["tracks"]), on
+    off = scene_runs("track-side-by-side-blind.toml", 50, 5, True, ambiguous_chi2=0.0)
+    assert off["R"]["id_switches"] == 1, off  # the failure, without
+
+
+def test_ambiguous_chi2_is_checked():
+    with pytest.raises(ParameterError, match="ambiguous_chi2"):
+        TrackerConfig(ambiguous_chi2=-1.0)
