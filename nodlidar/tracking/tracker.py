@@ -29,7 +29,9 @@ axis, :class:`~stonesoup.predictor.kalman.KalmanPredictor`,
    dynamic before static support can judge them, stays tentative); of two tracks updated in the
    same scan within ``coalesce_m`` of each other (one object followed twice) the younger ends
    (not when both were followed six scans or more and the scan saw their objects apart:
-   ``coalesce_seen_apart``);
+   ``coalesce_seen_apart``), and so does the younger of two that split one cluster between
+   them in ``shared_scans`` sightings in a row, moving alike and never seen apart (a box
+   that got a second track);
    a track unseen for more than ``max_missed`` scans ends (the default 25 outlasts the nod's
    blind interval, ~8 scans on the paper's ramp, and one person walking behind another:
    16 scans in ``design/scenes/track-crossing.toml``; the track coasts on its prediction),
