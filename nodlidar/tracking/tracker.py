@@ -2005,11 +2005,33 @@ class Tracker:
             a, b = self.tracks[t1], self.tracks[t2]
             young = b if len(b.scans) < len(a.scans) or (
                 len(b.scans) == len(a.scans) and b.track_id > a.track_id) else a
+            self._reanchor(a if young is b else b, young)
             del self.tracks[young.track_id]
             del self._shared[(t1, t2)]
             self.ended.append(young)
             ended.append(young)
         return ended
+
+    @staticmethod
+    def _reanchor(keep: _Track, young: _Track) -> None:
+        """Move ``keep``'s filtered position to the centroid of both tracks' latest parts
+        (this scan's, of one object), its position variance grown by the shift: its own part
+        was half the object, and the next scan's whole cluster lay 0.42 m from its
+        prediction, beyond the gate (``track-edge-box-away``, lifted, seed 8: a new track
+        on the box)."""
+        if not keep.centroids or not young.centroids or keep.last_scan != young.last_scan:
+            return
+        nk, ny = len(keep.points[-1]), len(young.points[-1])
+        c = (nk * np.asarray(keep.centroids[-1]) + ny * np.asarray(young.centroids[-1])) / (nk + ny)
+        d = c - np.asarray(keep.centroids[-1])
+        from stonesoup.types.state import GaussianState
+
+        sv = np.array(keep.state.state_vector, float)
+        P = np.array(keep.state.covar, float)
+        sv[[0, 2], 0] += d
+        P[np.ix_([0, 2], [0, 2])] += np.outer(d, d)
+        keep.state = GaussianState(sv, P, timestamp=keep.state.timestamp)
+        keep.centroids[-1] = c
 
     def _pieces(self, scan: ScanPoints, a: np.ndarray, b: np.ndarray, dist_m: float) -> bool:
         """Whether clusters ``a`` and ``b`` (beam indices), centroids ``dist_m`` [m] apart,
