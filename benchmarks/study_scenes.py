@@ -137,8 +137,18 @@ def summary(runs: list[dict]) -> dict:
                 out.append(f"{r['case']} {r['mover']}: {a:g} / {b:g}")
         return out
 
+    def out_of_view(r):
+        # the mirrors' beams first met the mover after lifted had converged on it
+        v, c = r["view_scan_mirrors"], r["conv_scan_lifted"]
+        return v is not None and c is not None and v > c
+
     crit = {
         "mirrors_later_by_time": later("conv_scan"),
+        "mirrors_later_by_time_out_of_view": [
+            f"{r['case']} {r['mover']}: {_fmt(r['conv_scan_mirrors'])} / "
+            f"{_fmt(r['conv_scan_lifted'])}, in view at {_fmt(r['view_scan_mirrors'])}"
+            for r in rows if out_of_view(r)
+            and (r["conv_scan_mirrors"] is None or r["conv_scan_mirrors"] > r["conv_scan_lifted"])],
         "mirrors_later_by_count": later("conv"),
         "mirrors_not_converged_where_lifted": [
             f"{r['case']} {r['mover']}: {_fmt(r['conv_scan_mirrors'])} / "
@@ -162,8 +172,8 @@ def summary(runs: list[dict]) -> dict:
 
 def print_summary(s: dict) -> None:
     print("| case | mover | by count M / L | by time M / L | first seen M / L | converged M / L "
-          "| switches M / L | min purity M / L | false tracks M / L |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| switches M / L | min purity M / L | false tracks M / L | in view M / L |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in s["rows"]:
         pm, pl = r["purity_min_mirrors"], r["purity_min_lifted"]
         print(f"| {r['case']} | {r['mover']} | {_fmt(r['conv_mirrors'])} / "
@@ -173,10 +183,12 @@ def print_summary(s: dict) -> None:
               f" / {r['converged_lifted']}/{r['seeds_lifted']} | {r['switches_mirrors']} / "
               f"{r['switches_lifted']} | {'-' if pm is None else f'{pm:.2f}'} / "
               f"{'-' if pl is None else f'{pl:.2f}'} | {r['false_tracks_mirrors']} / "
-              f"{r['false_tracks_lifted']} |")
+              f"{r['false_tracks_lifted']} | {_fmt(r.get('view_scan_mirrors'))} / "
+              f"{_fmt(r.get('view_scan_lifted'))} |")
     c = s["criteria"]
     print(f"\n{c['movers']} movers")
-    for k in ("mirrors_later_by_time", "mirrors_later_by_count",
+    for k in ("mirrors_later_by_time", "mirrors_later_by_time_out_of_view",
+              "mirrors_later_by_count",
               "mirrors_not_converged_where_lifted", "mirrors_fewer_seeds_converged",
               "identity_failures"):
         print(f"{k}: {len(c[k])}")

@@ -111,6 +111,26 @@ def test_tracker_takes_scan_points_from_the_live_path(design):
     assert np.hypot(states[-1].x_m - pos[0, 0, 0], states[-1].y_m - pos[0, 0, 1]) < 0.18
 
 
+def test_view_scan_is_when_the_beams_first_meet_the_mover(design):
+    """``view_scan`` is the first scan whose returns hold ``VIEW_POINTS`` of the mover, by
+    the simulator's truth, and no track can follow it earlier. The person of
+    track-entering-view starts 58 deg to the side, 0.94 m out: lifted (+-120 deg) sees them
+    from the first scan; the mirrors' view (+-40 deg) only once they have walked to ~0.6 m
+    / 1.0 m forward, i.e. after the 0.3 m/s walk of several scans (measured: scan 8)."""
+    for dep in (True, False):
+        r = E.run_online(design, "design/scenes/track-entering-view.toml", 12,
+                         mirrors_deployed=dep, seed=0)
+        m = E.evaluate(r)["movers"][0]
+        counts = [c.get(1, 0) for c in r.returns]
+        print(dep, m["view_scan"], m["first_scan"], counts)
+        assert m["view_scan"] == 1 + next(i for i, c in enumerate(counts) if c >= E.VIEW_POINTS)
+        assert m["first_scan"] is not None and m["first_scan"] >= m["view_scan"]
+        if dep:
+            assert 4 <= m["view_scan"] <= 10
+        else:
+            assert m["view_scan"] == 1
+
+
 def _runs(design, scene, n, seeds):
     return E.compare_mirrors(design, scene, seeds, n, ("renyi",))
 
@@ -170,6 +190,7 @@ def test_cli_study_scene_json(tmp_path, capsys):
     # the cylinder starts in both views: seen as a mover from the first scans in both
     for cfg in ("mirrors", "lifted"):
         assert 1 <= doc["summary"][0][f"first_scan_{cfg}"] <= 3
+        assert 1 <= doc["summary"][0][f"view_scan_{cfg}"] <= doc["summary"][0][f"first_scan_{cfg}"]
     assert (out / "scene_study.md").stat().st_size > 0
     # the output exists now: refused without --force, one line
     assert main(["study", "mirrors", "--scene", "paper-tracking", "--out", str(out)]) == 2

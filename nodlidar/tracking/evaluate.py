@@ -29,6 +29,11 @@ live tracker reported at the time (causal):
   mirrors deployed the view is the middle of the fan (the sides go to the mirrors), so a
   mover that starts beside the sensor is first seen later than lifted, and its
   ``conv_scan`` can only be later by as much;
+* **in view** of a mover (``view_scan``): the run's scan number (1-based) in which the
+  configuration's beams first returned ``VIEW_POINTS`` points or more from it (simulator
+  truth, whatever the tracker made of them): the earliest it could be seen at all. Where
+  the mirrors' ``view_scan`` is after the scan at which lifted converged, no tracker
+  converges as early with the mirrors: the view, not the estimate, sets the delay;
 * **identity switches**: how often the track following a mover changes, counted over the
   tracks the tracker confirmed (its output): a tentative track never confirmed (seen in
   fewer than ``confirm_scans`` scans, then lost) was never reported as an object, so it is
@@ -70,12 +75,15 @@ if TYPE_CHECKING:
     from ..sim.raycast import SceneSimulator
     from ..sim.scene import Scene
 
-__all__ = ["V_TOL_M_S", "HEADING_TOL_DEG", "mover_truth", "OnlineResult", "run_online",
-           "evaluate", "online_convergence", "false_tracks", "compare_mirrors",
+__all__ = ["V_TOL_M_S", "HEADING_TOL_DEG", "VIEW_POINTS", "mover_truth", "OnlineResult",
+           "run_online", "evaluate", "online_convergence", "false_tracks", "compare_mirrors",
            "comparison_markdown", "summary_rows", "grid_scene"]
 
 V_TOL_M_S = 0.01
 HEADING_TOL_DEG = 2.0
+#: points of a mover one scan must return for ``view_scan``: the segmentation's least
+#: cluster (``SegmentConfig.min_cluster_points``)
+VIEW_POINTS = 5
 
 
 def grid_scene(speed_m_s: float, heading_deg: float, length_m: float = 3.0) -> Scene:
@@ -131,6 +139,8 @@ class OnlineResult:
     ``records``: one dict per track update (scan, track, t_s, x_m, y_m, v_m_s, heading_rad,
     confirmed, counts: {truth id: points}). ``confirmed``: per scan, the confirmed live
     tracks' (t_s, x, y). ``update_s``: wall time of each ``Tracker.update`` [s].
+    ``returns``: per scan, {"scan": its number, truth id: points} over every return of the
+    scan (what the beams saw, tracked or not).
     """
 
     scene: Scene
@@ -142,6 +152,7 @@ class OnlineResult:
     confirmed: list[list[tuple[float, float, float]]] = field(default_factory=list)
     scan_t_s: list[float] = field(default_factory=list)
     update_s: list[float] = field(default_factory=list)
+    returns: list[dict] = field(default_factory=list)
 
 
 def run_online(design: Design, scene: Scene | str | Path, n_scans: int, *,
@@ -168,6 +179,9 @@ def run_online(design: Design, scene: Scene | str | Path, n_scans: int, *,
         changed = trk.update(s)
         res.update_s.append(time.perf_counter() - t0)
         res.scan_t_s.append(s.t_mid_s)
+        ids, cnt = (np.unique(s.truth_id, return_counts=True) if s.truth_id is not None
+                    else (np.zeros(0, int), np.zeros(0, int)))
+        res.returns.append({"scan": s.scan, **dict(zip(ids.tolist(), cnt.tolist()))})
         ended = {st.track_id for st in changed if not st.alive}
         for st in changed:
             if not st.alive or st.track_id in ended:
@@ -254,7 +268,9 @@ def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
                      "purity": None, "conv": None, "conv_scan": None, "final_err_v_m_s": None,
                      "final_err_heading_deg": None,
                      "tentative_tracks": sorted(set(tracks) - confirmed),
-                     "first_scan": int(seq[0]["scan"]) + 1 if seq else None}
+                     "first_scan": int(seq[0]["scan"]) + 1 if seq else None,
+                     "view_scan": next((int(c["scan"]) + 1 for c in res.returns
+                                        if c.get(oid, 0) >= VIEW_POINTS), None)}
         # the estimates the tracker reported: a track never confirmed (one sighting, no
         # velocity yet) was not one, so its record is neither a wrong estimate nor the end
         # of the mover's sequence
@@ -323,8 +339,8 @@ def _median(xs):
 
 def summary_rows(results: list[dict]) -> list[dict]:
     """One row per (entropy, mover): median online convergence over seeds, mirrors vs
-    lifted, median first scan seen, converged counts, worst purity, switches, final errors
-    and GOSPA."""
+    lifted, median first scan seen (by a track, and by the beams), converged counts, worst
+    purity, switches, final errors and GOSPA."""
     keys = sorted({(r["entropy"], i, m["mover"]) for r in results
                    for i, m in enumerate(r["movers"])})
     rows = []
@@ -337,6 +353,7 @@ def summary_rows(results: list[dict]) -> list[dict]:
             row[f"conv_{cfg}"] = _median(conv)
             row[f"conv_scan_{cfg}"] = _median([m.get("conv_scan") for m in ms])
             row[f"first_scan_{cfg}"] = _median([m.get("first_scan") for m in ms])
+            row[f"view_scan_{cfg}"] = _median([m.get("view_scan") for m in ms])
             row[f"converged_{cfg}"] = f"{sum(c is not None for c in conv)}/{len(conv)}"
             pur = [m["purity"] for m in ms if m["purity"] is not None]
             row[f"purity_min_{cfg}"] = min(pur) if pur else None
