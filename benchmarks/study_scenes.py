@@ -149,6 +149,8 @@ def summary(runs: list[dict]) -> dict:
             f"{_fmt(r['conv_scan_lifted'])}, in view at {_fmt(r['view_scan_mirrors'])}"
             for r in rows if out_of_view(r)
             and (r["conv_scan_mirrors"] is None or r["conv_scan_mirrors"] > r["conv_scan_lifted"])],
+        # once each configuration's beams met the mover (evaluate's conv_after_view)
+        "mirrors_later_after_view": later("conv_after_view"),
         "mirrors_later_by_count": later("conv"),
         "mirrors_not_converged_where_lifted": [
             f"{r['case']} {r['mover']}: {_fmt(r['conv_scan_mirrors'])} / "
@@ -188,7 +190,7 @@ def print_summary(s: dict) -> None:
     c = s["criteria"]
     print(f"\n{c['movers']} movers")
     for k in ("mirrors_later_by_time", "mirrors_later_by_time_out_of_view",
-              "mirrors_later_by_count",
+              "mirrors_later_after_view", "mirrors_later_by_count",
               "mirrors_not_converged_where_lifted", "mirrors_fewer_seeds_converged",
               "identity_failures"):
         print(f"{k}: {len(c[k])}")

@@ -149,6 +149,8 @@ def test_study_scenes_criteria_from_runs():
     crit = mod.summary(runs)["criteria"]
     assert crit["mirrors_later_by_time"] == ["a P: 21.5 / 10", "b P: 16 / 10"]
     assert crit["mirrors_later_by_time_out_of_view"] == ["b P: 16 / 10, in view at 12.5"]
+    # converged 3.5 scans after its view met it, lifted 9 (in view at 1): not later so
+    assert crit["mirrors_later_after_view"] == ["a P: 20.5 / 9"]
     assert crit["mirrors_later_by_count"] == ["a P: 5 / 4"]
     assert crit["mirrors_not_converged_where_lifted"] == ["track-crossing P: - / 9"]
     assert crit["mirrors_fewer_seeds_converged"] == ["track-crossing P: 1 / 4"]

@@ -33,7 +33,9 @@ live tracker reported at the time (causal):
   configuration's beams first returned ``VIEW_POINTS`` points or more from it (simulator
   truth, whatever the tracker made of them): the earliest it could be seen at all. Where
   the mirrors' ``view_scan`` is after the scan at which lifted converged, no tracker
-  converges as early with the mirrors: the view, not the estimate, sets the delay;
+  converges as early with the mirrors: the view, not the estimate, sets the delay.
+  ``conv_after_view`` is ``conv_scan - view_scan``: how long the configuration took to
+  converge once its beams met the mover;
 * **identity switches**: how often the track following a mover changes, counted over the
   tracks the tracker confirmed (its output): a tentative track never confirmed (seen in
   fewer than ``confirm_scans`` scans, then lost) was never reported as an object, so it is
@@ -265,7 +267,8 @@ def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
         switches = int(sum(a != b for a, b in zip(ids, ids[1:])))
         row: dict = {"mover": res.scene.movers[k].name, "scans_followed": len(seq),
                      "tracks": sorted(set(tracks)), "id_switches": switches,
-                     "purity": None, "conv": None, "conv_scan": None, "final_err_v_m_s": None,
+                     "purity": None, "conv": None, "conv_scan": None, "conv_after_view": None,
+                     "final_err_v_m_s": None,
                      "final_err_heading_deg": None,
                      "tentative_tracks": sorted(set(tracks) - confirmed),
                      "first_scan": int(seq[0]["scan"]) + 1 if seq else None,
@@ -297,6 +300,8 @@ def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
             if row["conv"] is not None:
                 # the same moment as a scan number of the run (1-based): time, not count
                 row["conv_scan"] = int(seq[row["conv"] - 1]["scan"]) + 1
+                if row["view_scan"] is not None:
+                    row["conv_after_view"] = row["conv_scan"] - row["view_scan"]
             if np.isfinite(ev[-1]):
                 row["final_err_v_m_s"] = round(float(ev[-1]), 4)
                 row["final_err_heading_deg"] = round(float(eh[-1]), 3)
@@ -354,6 +359,10 @@ def summary_rows(results: list[dict]) -> list[dict]:
             row[f"conv_scan_{cfg}"] = _median([m.get("conv_scan") for m in ms])
             row[f"first_scan_{cfg}"] = _median([m.get("first_scan") for m in ms])
             row[f"view_scan_{cfg}"] = _median([m.get("view_scan") for m in ms])
+            row[f"conv_after_view_{cfg}"] = _median(
+                [m["conv_scan"] - m["view_scan"]
+                 if m.get("conv_scan") is not None and m.get("view_scan") is not None else None
+                 for m in ms])
             row[f"converged_{cfg}"] = f"{sum(c is not None for c in conv)}/{len(conv)}"
             pur = [m["purity"] for m in ms if m["purity"] is not None]
             row[f"purity_min_{cfg}"] = min(pur) if pur else None
