@@ -613,7 +613,8 @@ class TrackerConfig:
         shape, and the visible arc turns with the bearing: the speed reads slow, by an
         amount about linear in the kernel's width, and range noise widens the kernel
         (analytic fan, 1 m/s 2.5 m ahead, 2.5 cm noise, 16 scans:
-        -0.0064 m/s with 2 cm, -0.0000 extrapolated from 3 cm; ``tests/test_tracking_debias.py``).
+        -0.0064 m/s with 2 cm, -0.0010 extrapolated from 3 cm, mean of 30 draws;
+        ``tests/test_tracking_debias.py``).
         Over the harness (seeds 0-7, 1824 runs) with 0.03 and the two bounds below, the
         final speed is closer (within 0.01 m/s in 95.6 / 95.2 % of mover-runs against
         94.9 / 94.2, mirrors / lifted; 1300 / 1298 converged against 1290 / 1285), but the
