@@ -8,6 +8,7 @@ entering it is seen only up to a beam fixed in the sensor.
 
 import numpy as np
 import pytest
+from cylinder_fan import cylinder_scans
 from numpy.testing import assert_allclose
 
 from nodlidar.tracking.motion import MotionEstimate, RenyiCost, motion_from_velocity, refine_motion
@@ -61,24 +62,17 @@ def test_cut_edges_are_the_cut_beams_ray_with_the_slice_on_its_seen_side():
 def _entering(v=(0.3, 0.0), c0=(0.9, 0.8), r=0.18, n=12, noise_m=0.01, seed=0):
     """A cylinder of radius ``r`` walking into a view that ends at ``EDGE_DEG``: per scan
     (0.1 s, 0.352 deg beams, per-beam times), its points, times and cut lines."""
-    rng = np.random.default_rng(seed)
-    b = np.radians(np.arange(-EDGE_DEG, EDGE_DEG + 1e-9, 0.352))
-    d = np.column_stack([np.cos(b), np.sin(b)])
     e = np.radians(EDGE_DEG)
+    n_beams = len(np.arange(-EDGE_DEG, EDGE_DEG + 1e-9, 0.352))
     P, T, E = [], [], []
-    for k in range(n):
-        t = 0.1 * k + 0.1 * (b - b[0]) / (b[-1] - b[0])
-        c = np.asarray(c0) + np.outer(t, v)
-        dc = (d * c).sum(1)
-        disc = dc ** 2 - (c ** 2).sum(1) + r ** 2
-        hit = disc > 0
-        p = d[hit] * (dc[hit] - np.sqrt(disc[hit]) + noise_m * rng.standard_normal(hit.sum()))[:, None]
-        ed = np.full((hit.sum(), 2, 5), np.nan)
-        if hit[-1]:  # the edge beam meets the cylinder: the view is cut there
+    for beams, d, rng_m, t in cylinder_scans(v, c0, r, n, noise_m, seed, EDGE_DEG):
+        p = d * rng_m[:, None]
+        ed = np.full((len(p), 2, 5), np.nan)
+        if len(beams) and beams[-1] == n_beams - 1:  # the edge beam meets the cylinder: cut
             side = np.sign(np.cos(e) * p[:, 1].mean() - np.sin(e) * p[:, 0].mean())
             ed[:, 0] = (0.0, 0.0, np.cos(e), np.sin(e), side)
         P.append(np.column_stack([p, np.zeros(len(p))]))
-        T.append(t[hit])
+        T.append(t)
         E.append(ed)
     return np.concatenate(P), np.concatenate(T), np.concatenate(E)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cylinder_fan import cylinder_scans
 
 from nodlidar.errors import ParameterError
 from nodlidar.tracking.motion import (
@@ -19,25 +20,15 @@ from nodlidar.tracking.tracker import TrackerConfig, _debiased
 
 
 def _passing(v=(0.0, -1.0), c0=(2.5, 0.3), r=0.18, n=16, noise_m=0.025, seed=0):
-    """A cylinder of radius ``r`` [m] moving at ``v`` [m/s] from ``c0``, seen whole by a
-    fan of 0.352 deg beams over +-120 deg, one scan per 0.1 s with per-beam times: its
-    points (k, 3), times (k,) and incidence weights (k,)."""
-    rng = np.random.default_rng(seed)
-    b = np.radians(np.arange(-120.0, 120.0 + 1e-9, 0.352))
-    d = np.column_stack([np.cos(b), np.sin(b)])
+    """A cylinder of radius ``r`` moving at ``v`` [m/s] from ``c0``, seen whole by a fan of
+    0.352 deg beams over +-120 deg: its points (k, 3), times (k,) and incidence weights."""
     P, T, W = [], [], []
-    for k in range(n):
-        t = 0.1 * k + 0.1 * (b - b[0]) / (b[-1] - b[0])
-        c = np.asarray(c0) + np.outer(t, v)
-        dc = (d * c).sum(1)
-        disc = dc ** 2 - (c ** 2).sum(1) + r ** 2
-        hit = disc > 0
-        rng_m = dc[hit] - np.sqrt(disc[hit]) + noise_m * rng.standard_normal(hit.sum())
-        p = np.column_stack([d[hit] * rng_m[:, None], np.zeros(hit.sum())])
+    for beams, d, rng_m, t in cylinder_scans(v, c0, r, n, noise_m, seed, 120.0):
+        p = np.column_stack([d * rng_m[:, None], np.zeros(len(t))])
         P.append(p)
-        T.append(t[hit])
-        W.append(incidence_weights(p, np.column_stack([d[hit], np.zeros(hit.sum())]),
-                                   np.flatnonzero(hit), np.zeros(hit.sum(), int)))
+        T.append(t)
+        W.append(incidence_weights(p, np.column_stack([d, np.zeros(len(t))]), beams,
+                                   np.zeros(len(t), int)))
     return np.concatenate(P), np.concatenate(T), np.concatenate(W)
 
 
