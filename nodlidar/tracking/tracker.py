@@ -618,9 +618,10 @@ class TrackerConfig:
         Over the harness (seeds 0-7, 1824 runs) with 0.03 and the two bounds below, the
         final speed is closer (within 0.01 m/s in 95.6 / 95.2 % of mover-runs against
         94.9 / 94.2, mirrors / lifted; 1300 / 1298 converged against 1290 / 1285), but the
-        extrapolation's spread makes more runs converge later than earlier (128 / 163
-        against 79 / 122), identity switches 39 / 33 -> 42 / 39, and more movers converge
-        later with mirrors than lifted (18 -> 21): not the default (docs/tracking.md,
+        extrapolation's spread makes more mover-runs converge later than earlier (with
+        mirrors 128 later, 79 earlier; lifted 163 and 122), identity switches go 39 / 33 ->
+        42 / 39, and more movers converge later with mirrors than lifted (18 -> 21): not
+        the default (docs/tracking.md,
         "Nineteenth session"). 0: off (default).
     debias_min_speed_m_s, debias_max_cut_fraction : float
         ... only for tracks at this speed [m/s] or more (the bias grows with the speed;
