@@ -8,7 +8,7 @@ entering it is seen only up to a beam fixed in the sensor.
 
 import numpy as np
 import pytest
-from cylinder_fan import cylinder_scans
+from cylinder_fan import BEAM_DEG, cylinder_scans
 from numpy.testing import assert_allclose
 
 from nodlidar.tracking.motion import MotionEstimate, RenyiCost, motion_from_velocity, refine_motion
@@ -63,7 +63,7 @@ def _entering(v=(0.3, 0.0), c0=(0.9, 0.8), r=0.18, n=12, noise_m=0.01, seed=0):
     """A cylinder of radius ``r`` walking into a view that ends at ``EDGE_DEG``: per scan
     (0.1 s, 0.352 deg beams, per-beam times), its points, times and cut lines."""
     e = np.radians(EDGE_DEG)
-    n_beams = len(np.arange(-EDGE_DEG, EDGE_DEG + 1e-9, 0.352))
+    n_beams = len(np.arange(-EDGE_DEG, EDGE_DEG + 1e-9, BEAM_DEG))
     P, T, E = [], [], []
     for beams, d, rng_m, t in cylinder_scans(v, c0, r, n, noise_m, seed, EDGE_DEG):
         p = d * rng_m[:, None]

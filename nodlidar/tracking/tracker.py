@@ -621,8 +621,7 @@ class TrackerConfig:
         extrapolation's spread makes more mover-runs converge later than earlier (with
         mirrors 128 later, 79 earlier; lifted 163 and 122), identity switches go 39 / 33 ->
         42 / 39, and more movers converge later with mirrors than lifted (18 -> 21): not
-        the default (docs/tracking.md,
-        "Nineteenth session"). 0: off (default).
+        the default (docs/tracking.md, "Nineteenth session"). 0: off (default).
     debias_min_speed_m_s, debias_max_cut_fraction : float
         ... only for tracks at this speed [m/s] or more (the bias grows with the speed;
         below it the extrapolation adds spread only) and windows with at most this fraction
