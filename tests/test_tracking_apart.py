@@ -583,3 +583,46 @@ def test_two_tracks_whose_people_the_scan_saw_apart_both_go_on(scene_runs):
     scene_runs.assert_kept(scene_runs("track-meet.toml", 85, 1, False))
     movers = scene_runs("track-meet.toml", 85, 1, False, coalesce_seen_apart=False)
     assert sum(m["id_switches"] for m in movers.values()) >= 1, movers
+
+
+def test_a_face_receding_into_the_split_is_not_seen_apart():
+    # a 0.5 m box's side face at grazing incidence (11 deg from the rays, 3.2-3.7 m out)
+    # recedes ~0.1 m per beam; split by the segmentation near its far end, with range
+    # noise, the step across the split can pass jump_m while the far piece's one or two
+    # steps happen to be small (measured: design/scenes/track-two-boxes.toml, mirrors,
+    # seed 2, scan 73: steps 0.09, 0.12, then 0.155 across the split, then -0.03, 0.07 -
+    # a second track took the box). The face led into the step: no occlusion
+    rng = np.random.default_rng(0)
+    base, obj = _scan([], [(3.15, 0.655, 3.65, 1.155)])
+    q = np.flatnonzero(obj == 1)
+    order = q[np.argsort(base.range_m[q])]
+    draws = 300
+    apart = {k: 0 for k in (2, 3, 4)}
+    for _ in range(draws):
+        s = _noisy(base, rng)
+        for k in apart:
+            apart[k] += seen_apart(s, order[:-k], order[-k:])
+    # measured 3 of 300 for each split (21 of 300 each before the near side counted)
+    assert max(apart.values()) / draws <= 0.03, apart
+    # a person (r 0.2 m) behind the box's far corner is seen apart as before: 0.9 m behind
+    # always, 0.6 m behind in most draws, 0.4 m in some (their surface near the face's)
+    share = {}
+    for cx in (4.1, 4.3, 4.6):
+        base2, obj2 = _scan([(cx, 0.5, 0.2)], [(3.15, 0.655, 3.65, 1.155)])
+        a, b = np.flatnonzero(obj2 == 2), np.flatnonzero(obj2 == 1)
+        share[cx] = np.mean([seen_apart(_noisy(base2, rng), a, b) for _ in range(draws)])
+    assert share[4.6] == 1.0 and share[4.3] >= 0.8 and share[4.1] >= 0.2, share
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_the_box_behind_another_is_not_followed_by_tracks_on_its_pieces(seed, scene_runs):
+    """``design/scenes/track-two-boxes.toml`` (two 0.5 m boxes pushed together, the far one
+    mostly behind the near one), mirrors. Measured, seeds 2 and 3, the nineteenth session's
+    code: the far box went through 4 tracks (5 and 3 switches): its side face at grazing
+    incidence, split by the segmentation, was "seen apart" into two objects (and the near
+    box's face too: a track born on its piece took the far box's). Now one track until the
+    near box hides it all (scans 30-66 in seed 2), and one after: the far box's sightings
+    before are too few (3 scans) for a velocity that carries its track across the gap."""
+    on = scene_runs("track-two-boxes.toml", 90, seed, True)
+    assert len(on["far"]["tracks"]) <= 2 and on["far"]["id_switches"] <= 1, on
+    assert on["near"]["tracks"] == [1] and on["near"]["conv"] is not None, on
