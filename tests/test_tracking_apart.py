@@ -604,8 +604,9 @@ def test_a_face_receding_into_the_split_is_not_seen_apart():
             apart[k] += seen_apart(s, order[:-k], order[-k:])
     # measured 3 of 300 for each split (21 of 300 each before the near side counted)
     assert max(apart.values()) / draws <= 0.03, apart
-    # a person (r 0.2 m) behind the box's far corner is seen apart as before: 0.9 m behind
-    # always, 0.6 m behind in most draws, 0.4 m in some (their surface near the face's)
+    # a person (r 0.2 m) behind the box's far corner is seen apart as before: their centre
+    # 0.95 m beyond the corner (x) always, 0.65 m in most draws, 0.45 m in some (their
+    # surface near the face's end)
     share = {}
     for cx in (4.1, 4.3, 4.6):
         base2, obj2 = _scan([(cx, 0.5, 0.2)], [(3.15, 0.655, 3.65, 1.155)])
