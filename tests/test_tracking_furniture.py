@@ -377,3 +377,77 @@ def test_a_ghost_seen_once_is_not_re_acquired_while_its_furniture_is_still_there
     for a, b in zip(on["movers"], off["movers"]):
         assert (a["conv_scan"], a["id_switches"], a["tracks"]) == \
             (b["conv_scan"], b["id_switches"], b["tracks"]), (a, b)
+
+
+def test_a_velocity_must_lay_the_sightings_on_one_another_to_confirm():
+    """``Tracker._sightings_agree`` (``TrackerConfig.confirm_overlap``, 0.5): moved back along
+    the velocity, the better covered of the latest sighting and the earlier ones has half
+    its points within 0.1 m of the other. A person's front arc (a 0.19 m cylinder, 1 cm
+    noise) seen twice agrees at its velocity, and when the second sighting shows more of it
+    (growing into the view); at a velocity 2 m/s off (0.2 m in 0.1 s) it does not. A
+    table's top seen along one scan line and its front edge in the next (the nod meets them
+    in turn) do not lay on one another at the velocity the registration gave them (0.99 m/s,
+    measured in ``track-drive-room``), nor at zero."""
+    from types import SimpleNamespace
+
+    from nodlidar.tracking.tracker import Tracker, TrackerConfig
+
+    rng = np.random.default_rng(0)
+    trk = Tracker(TrackerConfig())
+
+    def track(clusters, v, dt=0.1):
+        pts = [np.column_stack([c, np.zeros(len(c))]) for c in clusters]
+        times = [np.full(len(c), dt * k) for k, c in enumerate(clusters)]
+        return SimpleNamespace(points=pts, times=times, x=np.array([0.0, 0.0, *v]),
+                               scans=list(range(len(pts))), start=0)
+
+    def arc(center, a0, a1, n=40):
+        a = np.linspace(a0, a1, n)
+        return (np.asarray(center) + 0.19 * np.column_stack([-np.cos(a), np.sin(a)])
+                + rng.normal(0, 0.01, (n, 2)))
+
+    v = np.array([0.0, 0.5])  # across the view, 2 m ahead
+    c0, c1 = np.array([2.0, 0.0]), np.array([2.0, 0.05])
+    assert trk._sightings_agree(track([arc(c0, -1.0, 1.0), arc(c1, -1.0, 1.0)], v))
+    # growing into the view: the first sighting a third of the arc
+    assert trk._sightings_agree(track([arc(c0, 0.3, 1.0, 14), arc(c1, -1.0, 1.0)], v))
+    assert not trk._sightings_agree(track([arc(c0, -1.0, 1.0), arc(c1, -1.0, 1.0)],
+                                          v + [2.0, 0.0]))
+    # the table (top 3.4-4.6 x -1.9 to -1.1 m): a scan line across its top near the corner,
+    # then its front edge (x = 3.4) from the corner along 0.55 m
+    s = np.linspace(0.0, 1.0, 50)
+    top = np.column_stack([3.4 + 0.75 * s, -1.1 - 0.35 * s ** 2]) + rng.normal(0, 0.01, (50, 2))
+    edge = np.column_stack([np.full(38, 3.42), np.linspace(-1.1, -1.65, 38)]) \
+        + rng.normal(0, 0.01, (38, 2))
+    for vel in ([-0.75, -0.64], [0.0, 0.0]):
+        assert not trk._sightings_agree(track([top, edge], vel, dt=0.2)), vel
+    # off: anything agrees
+    off = Tracker(TrackerConfig(confirm_overlap=0.0))
+    assert off._sightings_agree(track([top, edge], [0.0, 0.0], dt=0.2))
+
+
+@pytest.mark.slow
+def test_a_driving_robots_table_is_not_confirmed_on_two_of_its_parts(design):
+    """``design/scenes/track-drive-room.toml`` (held out as ``w-drive-room`` until session 21:
+    a false track, lifted, in 7 of 8 seeds): the robot drives at 0.25 m/s past a table; the
+    nod meets the table's top (scan 74), then its front edge (scan 76), and the track on them
+    read 0.99 m/s and was confirmed. With ``confirm_overlap`` the two sightings do not lie on
+    one another at that velocity: no false track in seeds 0 and 1, one in each without; the
+    person's track is the same."""
+    from pathlib import Path
+
+    from nodlidar.sim.scene import load_scene
+    from nodlidar.tracking.evaluate import evaluate, run_online
+    from nodlidar.tracking.tracker import TrackerConfig
+
+    scene = load_scene(Path(__file__).resolve().parents[1] / "design" / "scenes"
+                       / "track-drive-room.toml")
+    for seed in (0, 1):
+        ev = {f: evaluate(run_online(design, scene, 90, mirrors_deployed=False, seed=seed,
+                                     tracker=TrackerConfig(confirm_overlap=f)))
+              for f in (0.5, 0.0)}
+        assert (ev[0.5]["false_tracks"], ev[0.0]["false_tracks"]) == (0, 1), \
+            (seed, ev[0.5]["false_tracks"], ev[0.0]["false_tracks"])
+        a, b = ev[0.5]["movers"][0], ev[0.0]["movers"][0]
+        assert (a["conv_scan"], a["tracks"], a["id_switches"]) == \
+            (b["conv_scan"], b["tracks"], b["id_switches"]), (seed, a, b)
