@@ -304,7 +304,7 @@ class TrackerConfig:
         object seen twice, whole or growing into the view, is covered; two parts of a piece
         of furniture that the nod met in turn (a table's top, then its front edge, from a
         driving robot: 0.99-1.27 m/s) are not. Measured at the confirmation of every track
-        over the harness's scenes (seeds 0 and 1, 809 tracks): movers 0.66-1.0 (1 % below
+        over the harness's scenes (seeds 0 and 1, 809 tracks): movers 0.66-1.0 (8 of 802 below
         1.0), the static world's 0.30-0.39 in three of seven, 0.66-1.0 in the rest.
         docs/tracking.md "Twenty-first session". 0: off.
     hold_sliding_lines : bool
