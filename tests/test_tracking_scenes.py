@@ -225,6 +225,63 @@ def test_window_map_answers_as_the_full_map_within_its_window():
     assert short.n_keys == sum(len(k) for k in win._keys[-3:])
 
 
+def test_window_map_index_answers_as_the_search_scan_by_scan():
+    # the slot index (one search for every kept scan) against the search per kept scan it
+    # replaced, over windows that wrap many times, scans with no ray, rays with no return,
+    # static support on and off, and scan gaps of 1 and 2
+    from nodlidar.tracking.voxels import VoxelGrid, WindowVoxelMap
+
+    rng = np.random.default_rng(1)
+    seen = np.zeros(2, int)
+    for window in (1, 3, 12, 60, 64):
+        for age in (0.0, 0.35):
+            fast = WindowVoxelMap(VoxelGrid(0.1), window_scans=window, static_age_s=age)
+            slow = WindowVoxelMap(VoxelGrid(0.1), window_scans=window, static_age_s=age)
+            slow._free_index = slow._hit_index = None  # the search scan by scan
+            for k in range(100):
+                n = 0 if k % 17 == 5 else 60
+                d = rng.normal(size=(n, 3))
+                d /= np.linalg.norm(d, axis=1)[:, None]
+                start, r = rng.uniform(-0.3, 0.3, (n, 3)), rng.uniform(0.3, 2.0, n)
+                r[rng.random(n) < 0.1] = np.nan
+                hits = start + np.nan_to_num(r)[:, None] * d
+                for m in (fast, slow):
+                    m.integrate(k, hits, start, d, r, np.zeros(n), t_s=0.1 * k)
+                q = rng.uniform(-2, 2, (300, 3))
+                q[:100] = hits[rng.integers(0, max(n, 1), 100)] if n else q[:100]
+                for gap in (1, 2):
+                    for t in (np.nan, 0.1 * k, 0.1 * k - 0.2):
+                        a = fast.inconsistent(q, k, gap, t_s=t)
+                        assert np.array_equal(a, slow.inconsistent(q, k, gap, t_s=t))
+                        seen += [a.sum(), (~a).sum()]
+                sup = fast.static_support(q, 0.1 * k)
+                assert np.array_equal(sup, slow.static_support(q, 0.1 * k))
+                if age > 0:
+                    seen[0] += sup.sum()
+    assert seen.min() > 1000  # both answers were given many times
+
+
+def test_connected_labels_are_scipys():
+    # the clustering's connected components against scipy's on random graphs: the same
+    # labels, numbered by each component's smallest node
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from nodlidar.tracking.segment import connected_labels
+
+    rng = np.random.default_rng(0)
+    for _ in range(500):
+        n = int(rng.integers(1, 300))
+        e = int(rng.integers(0, 3 * n))
+        a, b = rng.integers(0, n, e), rng.integers(0, n, e)
+        ref = connected_components(coo_matrix((np.ones(e), (a, b)), shape=(n, n)),
+                                   directed=False)[1]
+        assert np.array_equal(connected_labels(n, a, b), ref)
+    # a path numbered backwards: one component, however long the chain of roots
+    n = 1000
+    assert np.array_equal(connected_labels(n, np.arange(1, n), np.arange(n - 1)), np.zeros(n))
+
+
 def test_unique_keys_is_np_unique():
     # the sort-based unique the carving and the tracker use, against numpy's own: a scan's
     # carving (few distinct keys among many), negative keys, and the empty and one-key ends

@@ -460,26 +460,46 @@ def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.
     ``d = dq + dw dt`` and ``S = n + 2 sum e``, ``f = -ln(S / n^2)``,
     ``dS/dw_a = -4c sum e d_a dt``, ``d2S/dw_a dw_b = 2 sum e dt^2 (4c^2 d_a d_b - 2c [a=b])``,
     ``grad f = -grad S / S``, ``H f = -H S / S + grad S grad S^T / S^2``."""
-    dw = (np.asarray(velocity, float) - cost.c).astype(np.float32)
-    dx = cost.dt * dw[0]
-    dx += cost.dx
-    dy = cost.dt * dw[1]
-    dy += cost.dy
-    # the same float32 operations as written out in the docstring, into two scratch
-    # arrays instead of a new one per product (six pair-length arrays instead of ~15)
-    e = dx * dx
-    scratch = dy * dy
-    e += scratch  # d^2
-    if not cost.plane:
-        e += cost.dz2
-    c = float(cost.inv4s2)
-    e *= -cost.inv4s2
-    np.exp(e, out=e)
-    if cost.pw is not None:
-        e *= cost.pw
+    return _renyi_slopes(cost, _RenyiTerms(cost, velocity))
+
+
+class _RenyiTerms:
+    """The first half of :func:`_renyi_derivatives` at one velocity: the pair terms ``e``
+    and offsets ``d`` (kept for the slopes) and the cost ``f``. Newton's line search needs
+    only ``f`` at a trial step; the slopes (:func:`_renyi_slopes`) follow for the step it
+    takes, from the same arrays (the same numbers as in one pass)."""
+
+    def __init__(self, cost: RenyiCost, velocity: ArrayLike) -> None:
+        dw = (np.asarray(velocity, float) - cost.c).astype(np.float32)
+        dx = cost.dt * dw[0]
+        dx += cost.dx
+        dy = cost.dt * dw[1]
+        dy += cost.dy
+        # the same float32 operations as written out in the docstring, into two scratch
+        # arrays instead of a new one per product (six pair-length arrays instead of ~15)
+        e = dx * dx
+        scratch = dy * dy
+        e += scratch  # d^2
+        if not cost.plane:
+            e += cost.dz2
+        e *= -cost.inv4s2
+        np.exp(e, out=e)
+        if cost.pw is not None:
+            e *= cost.pw
+        s_e = float(np.sum(e, dtype=np.float64))
+        if cost.w != 1.0:  # sampled pairs, each standing for w pairs (RenyiCost)
+            s_e = cost.w * s_e
+        self.dx, self.dy, self.e, self.scratch, self.s_e = dx, dy, e, scratch, s_e
+        self.S = cost.s0 + 2.0 * s_e
+        self.f = float(-np.log(self.S / cost.norm))
+
+
+def _renyi_slopes(cost: RenyiCost, r: _RenyiTerms) -> tuple[float, np.ndarray, np.ndarray]:
+    """The cost, gradient and Hessian from :class:`_RenyiTerms` (whose arrays it spends)."""
     f64 = np.float64
-    s_e = float(np.sum(e, dtype=f64))
-    edt = np.multiply(e, cost.dt, out=scratch)
+    c = float(cost.inv4s2)
+    dx, dy, e = r.dx, r.dy, r.e
+    edt = np.multiply(e, cost.dt, out=r.scratch)
     ex, ey = edt * dx, edt * dy  # e d dt
     gx, gy = float(np.sum(ex, dtype=f64)), float(np.sum(ey, dtype=f64))
 
@@ -495,12 +515,12 @@ def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.
     hxx = dt_sum(ex, dx)  # sum e d_x^2 dt^2
     hyy = dt_sum(ey, dy)
     hxy = dt_sum(ex, dy)
-    if cost.w != 1.0:  # sampled pairs, each standing for w pairs (RenyiCost)
-        s_e, gx, gy, hxx, hyy, hxy, h0 = (cost.w * x for x in (s_e, gx, gy, hxx, hyy, hxy, h0))
-    S = cost.s0 + 2.0 * s_e
+    if cost.w != 1.0:
+        gx, gy, hxx, hyy, hxy, h0 = (cost.w * x for x in (gx, gy, hxx, hyy, hxy, h0))
+    S = r.S
     gS = -4.0 * c * np.array([gx, gy])
     HS = 2.0 * (4.0 * c * c * np.array([[hxx, hxy], [hxy, hyy]]) - 2.0 * c * h0 * np.eye(2))
-    return (float(-np.log(S / cost.norm)), -gS / S, -HS / S + np.outer(gS, gS) / S ** 2)
+    return (r.f, -gS / S, -HS / S + np.outer(gS, gS) / S ** 2)
 
 
 def _newton(cost: RenyiCost, w0: np.ndarray, max_step: float, xtol: float = 5e-5,
@@ -521,8 +541,9 @@ def _newton(cost: RenyiCost, w0: np.ndarray, max_step: float, xtol: float = 5e-5
         if n > max_step:
             step *= max_step / n
         for _ in range(8):
-            f1, g1, H1 = _renyi_derivatives(cost, w + step)
-            if f1 <= f:
+            trial = _RenyiTerms(cost, w + step)  # the cost alone until a step is taken
+            if trial.f <= f:
+                f1, g1, H1 = _renyi_slopes(cost, trial)
                 break
             step /= 2
         else:

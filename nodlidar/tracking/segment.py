@@ -25,8 +25,6 @@ from dataclasses import dataclass
 from typing import cast
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..errors import require
@@ -251,6 +249,33 @@ class Segmented:
         return [np.flatnonzero(mask & (self.cluster == c)) for c in labs]
 
 
+def connected_labels(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Connected components of the undirected graph on nodes ``0..n-1`` with edges
+    ``(a[k], b[k])``: (n,) int labels numbered in the order of each component's smallest
+    node (the labels of ``scipy.sparse.csgraph.connected_components``).
+
+    Union by the smaller root and pointer jumping, vectorised over the edges: a few passes
+    for the graphs of one scan, where building a sparse matrix for scipy costs ~0.3 ms of
+    checks per call (measured on the segmentation's own graphs: half the time).
+    """
+    parent = np.arange(n)
+    a, b = np.asarray(a, np.intp), np.asarray(b, np.intp)
+    while len(a):
+        ra, rb = parent[a], parent[b]  # roots: the parents are compressed below
+        apart = ra != rb
+        if not apart.any():
+            break
+        # an edge within one tree stays so: only the others go on
+        a, b, ra, rb = a[apart], b[apart], ra[apart], rb[apart]
+        np.minimum.at(parent, np.maximum(ra, rb), np.minimum(ra, rb))  # parent <= node
+        while True:
+            up = parent[parent]
+            if np.array_equal(up, parent):
+                break
+            parent = up
+    return np.unique(parent, return_inverse=True)[1]
+
+
 def cluster_points(points: np.ndarray, radius_m: float | np.ndarray, min_points: int = 1,
                    attach_m: float = 0.0, links: np.ndarray | None = None) -> np.ndarray:
     """Euclidean clustering: connected components of the neighbour graph.
@@ -294,8 +319,7 @@ def cluster_points(points: np.ndarray, radius_m: float | np.ndarray, min_points:
     if np.ptp(eps) > 0 and len(pairs):
         d = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
         pairs = pairs[d <= np.maximum(eps[pairs[:, 0]], eps[pairs[:, 1]])]
-    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, lab = connected_components(g, directed=False)
+    lab = connected_labels(n, pairs[:, 0], pairs[:, 1])
     sizes = np.bincount(lab)
     keep = sizes[lab] >= min_points
     if links is not None and len(links):
@@ -309,8 +333,7 @@ def cluster_points(points: np.ndarray, radius_m: float | np.ndarray, min_points:
         part = run | (sizes >= min_points)
         ok = (a != b) & part[a] & part[b]
         if ok.any():
-            g2 = coo_matrix((np.ones(int(ok.sum())), (a[ok], b[ok])), shape=(nc, nc))
-            grp = connected_components(g2, directed=False)[1]
+            grp = connected_labels(nc, a[ok], b[ok])
             has_kept = np.zeros(int(grp.max()) + 1, bool)
             has_kept[grp[sizes >= min_points]] = True
             # kept components take their linked group's label, and so do the small ones of

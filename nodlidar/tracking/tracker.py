@@ -905,7 +905,8 @@ class _Track:
     mirrors: list = field(default_factory=list)
     truth: list = field(default_factory=list)
     weights: list = field(default_factory=list)
-    cut: list = field(default_factory=list)  # per scan, (k, 2): each cut line's bearing, or NaN
+    cut: list = field(default_factory=list)  # per scan, (k, 2, 2): each cut line's bearing
+    # as (sin, cos), or NaN
     edges: list = field(default_factory=list)  # per scan, (k, 2, 6): segment.cut_edges
     sensor_v: list = field(default_factory=list)  # per scan, (2,): the sensor's velocity
     # per scan, (j,): the top-view lengths [m] of the slices with both ends the object's
@@ -1748,11 +1749,11 @@ class Tracker:
             [np.cos(coarse.heading_rad), np.sin(coarse.heading_rad)])
         # across each cut line (a beam's ray, or the floor's line along the scan), which
         # moves with the sensor: relative to the sensor's velocity; per point the fastest
-        across_lines = np.concatenate(
-            [np.abs((v[0] - u[0]) * np.sin(b) - (v[1] - u[1]) * np.cos(b))
-             for b, u in zip(tr.cut[w0:], tr.sensor_v[w0:])])
-        across = np.fmax(across_lines[:, 0], across_lines[:, 1])  # NaN: uncut
         sizes = [len(b) for b in tr.cut[w0:]]
+        sc = np.concatenate(tr.cut[w0:])  # (k, 2 lines, sin / cos)
+        du = v - np.repeat(np.array(tr.sensor_v[w0:]).reshape(-1, 2), sizes, axis=0)
+        across_lines = np.abs(du[:, :1] * sc[:, :, 0] - du[:, 1:] * sc[:, :, 1])
+        across = np.fmax(across_lines[:, 0], across_lines[:, 1])  # NaN: uncut
         out = np.split(across >= cfg.window_cut_drop_m_s, np.cumsum(sizes)[:-1])
         keep = ~np.concatenate(out)
         # left out only when what is left carries the estimate: most of the window's
@@ -2188,7 +2189,10 @@ class Tracker:
         edges = cut_edges(scan, idx, cfg.window_cut_reach_m, cfg.window_cut_occluders,
                           floor_z_m=self._floor_z_m if cfg.window_cut_floor else -np.inf)
         cut = np.isfinite(edges[:, 0, 0])
-        tr.cut.append(np.arctan2(edges[:, :, 3], edges[:, :, 2]))  # NaN where no line
+        # each line's bearing as its sine and cosine, once (_estimate takes them for every
+        # scan of the window at each refinement); NaN where no line
+        b = np.arctan2(edges[:, :, 3], edges[:, :, 2])
+        tr.cut.append(np.stack([np.sin(b), np.cos(b)], axis=-1))
         tr.centroids_uncut.append(pts[~cut, :2].mean(axis=0) if np.count_nonzero(~cut) >= 3
                                   else np.full(2, np.nan))
         u = getattr(scan, "sensor_velocity_m_s", None)  # duck-typed scans may lack it

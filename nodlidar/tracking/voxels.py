@@ -269,14 +269,61 @@ class VoxelMap:
         return self.free.lookup(self.grid.keys(points))[1]
 
 
+class _SlotIndex:
+    """Sorted unique voxel keys and, per key, a ``uint64`` bit mask of the ring slots (kept
+    scans, at most 64) whose key set holds it: one binary search answers for every kept
+    scan at once, where a search per kept scan costs ~60 numpy calls per query.
+
+    ``put(slot, keys)`` replaces the slot's set (sorted unique keys); ``lookup(keys)`` gives
+    each key's mask (0: in no slot). Work per ``put``: a few passes over the index, whose
+    size is the number of distinct voxels in the window (not the scans times their keys).
+    """
+
+    def __init__(self) -> None:
+        self.keys = np.zeros(0, np.int64)
+        self.mask = np.zeros(0, np.uint64)
+
+    def put(self, slot: int, keys: np.ndarray) -> None:
+        bit = np.uint64(1) << np.uint64(slot)
+        if len(self.keys):
+            self.mask &= ~bit  # the slot's previous scan leaves
+            live = self.mask != 0
+            if not live.all():
+                self.keys, self.mask = self.keys[live], self.mask[live]
+        if not len(keys):
+            return
+        i = np.searchsorted(self.keys, keys)
+        found = np.zeros(len(keys), bool)
+        if len(self.keys):
+            found = self.keys[np.minimum(i, len(self.keys) - 1)] == keys
+            self.mask[i[found]] |= bit
+        new = ~found
+        # sorted new keys at non-decreasing positions: the result stays sorted
+        self.keys = np.insert(self.keys, i[new], keys[new])
+        self.mask = np.insert(self.mask, i[new], bit)
+
+    def lookup(self, keys: np.ndarray) -> np.ndarray:
+        """(n,) uint64 slot mask of each key (0 where no slot holds it)."""
+        out = np.zeros(len(keys), np.uint64)
+        if not len(self.keys) or not len(keys):
+            return out
+        i = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        hit = self.keys[i] == keys
+        out[hit] = self.mask[i[hit]]
+        return out
+
+
 class WindowVoxelMap(VoxelMap):
     """A :class:`VoxelMap` for online use whose size and per-scan cost are bounded: it keeps
     the traversed voxels of the last ``window_scans`` scans only, one sorted key array per
     scan (a ring), instead of one map of everything ever seen.
 
-    Adding a scan costs O(new keys log new keys) (its own sort; nothing is re-merged) and
-    dropping the oldest scan O(1), so the cost does not grow with the explored area; a query
-    is one binary search per kept scan (``window_scans`` vectorised searches). Evidence older
+    Adding a scan costs its own sort, O(new keys log new keys), and an update of an index
+    of the window's distinct voxels, each with a bit per kept scan that traversed it
+    (``_SlotIndex``; a few passes over it, whose size the window bounds); dropping the
+    oldest scan clears its bit. The cost does not grow with the explored area. A query is
+    one binary search in the index for every kept scan at once (a window of more than 64
+    scans: one search per kept scan). Evidence older
     than the window is forgotten: a voxel traversed more than ``window_scans`` scans ago and
     occupied now is not inconsistent - the window must outlast the nod's period (every
     height is swept again within one nod cycle; the default 60 scans is 6 s).
@@ -302,6 +349,11 @@ class WindowVoxelMap(VoxelMap):
         self._keys: list[np.ndarray] = []
         self._hit_keys: list[np.ndarray] = []  # per kept scan, sorted unique hit keys
         self._t_s: list[float] = []  # per kept scan, its time [s]
+        # the same sets indexed by ring slot, one bit per kept scan (a window of more than
+        # 64 scans searches scan by scan)
+        self._slots: list[int] = []  # per kept scan, its slot
+        self._free_index = _SlotIndex() if self.window_scans <= 64 else None
+        self._hit_index = _SlotIndex() if self.window_scans <= 64 else None
 
     @property
     def n_keys(self) -> int:
@@ -313,19 +365,36 @@ class WindowVoxelMap(VoxelMap):
                   margin_scale: np.ndarray | float = 1.0) -> None:
         """As :meth:`VoxelMap.integrate`; ``t_s`` is the scan's time [s] (static support)."""
         fk = self.free_keys(start, direction, range_m, offset_m, margin_scale)  # sorted, unique
+        # the slot of the scan that leaves the window now, else the next unused one
+        slot = self._slots[0] if len(self._scans) >= self.window_scans else len(self._slots)
         self._scans.append(int(scan))
         self._keys.append(fk)
+        self._slots.append(slot)
+        if self._free_index is not None:
+            self._free_index.put(slot, fk)
         if self.static_age_s > 0:
             p = np.asarray(points, float)
             p = p[np.all(np.isfinite(p), axis=1)]
-            self._hit_keys.append(unique_keys(self.grid.keys(p)))
+            hk = unique_keys(self.grid.keys(p))
+            self._hit_keys.append(hk)
             self._t_s.append(float(t_s))
+            if self._hit_index is not None:
+                self._hit_index.put(slot, hk)
         while len(self._scans) > self.window_scans:
             self._scans.pop(0)
             self._keys.pop(0)
+            self._slots.pop(0)
             if self._hit_keys:
                 self._hit_keys.pop(0)
                 self._t_s.pop(0)
+
+    def _bits(self, use: list[bool]) -> np.uint64:
+        """The OR of the slot bits of the kept scans where ``use`` (per kept scan) holds."""
+        b = 0
+        for slot, u in zip(self._slots, use):
+            if u:
+                b |= 1 << slot
+        return np.uint64(b)
 
     def static_support(self, points: np.ndarray, t_s: float) -> np.ndarray:
         """(n,) bool: each point's voxel was hit in a kept scan at least ``static_age_s``
@@ -334,6 +403,9 @@ class WindowVoxelMap(VoxelMap):
         out = np.zeros(len(keys), bool)
         if self.static_age_s <= 0 or not np.isfinite(t_s):
             return out
+        if self._hit_index is not None:
+            bits = self._bits([ts <= t_s - self.static_age_s for ts in self._t_s])
+            return out if bits == 0 else (self._hit_index.lookup(keys) & bits) != 0
         for ts, hk in zip(self._t_s, self._hit_keys):
             if not len(hk) or not ts <= t_s - self.static_age_s:
                 continue
@@ -349,6 +421,15 @@ class WindowVoxelMap(VoxelMap):
         k = np.asarray(scan)
         scalar = k.ndim == 0  # one scan's points (the online case): the test per kept scan
         inv = None
+        if scalar and self._free_index is not None:
+            # every kept scan at once: the bits of those far enough from this one
+            kk = int(k)
+            bits = self._bits([s <= kk - min_scan_gap or s >= kk + min_scan_gap
+                               for s in self._scans])
+            out = (self._free_index.lookup(keys) & bits) != 0
+            if out.any() and self.static_age_s > 0 and np.isfinite(t_s):
+                out &= ~self.static_support(points, t_s)
+            return out
         if scalar and len(keys) > 1:
             # each voxel once, in order: the ~60 searches below run over fewer keys, sorted
             # (same answer per point)
