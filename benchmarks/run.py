@@ -33,7 +33,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 
-# the goals of issue 16 (figure -> (comparison, bound)); printed next to the results
+# the goals of issues 16 and 13 (figure -> (comparison, bound)); printed next to the results
 GOALS = {
     "assembly.ratio_vs_bare": (">=", 0.33),
     "scip.ratio_vs_hokuyolx": (">=", 50.0),
@@ -42,6 +42,14 @@ GOALS = {
     "cli.design_s": ("<=", 0.6),
     "cad.export_s": ("<=", 3.0),
     "tolerance.ratio_vs_v0": (">=", 3.0),   # samples/s vs the frozen pre-issue-16 kernel
+    # issue 13: update (segmentation + tracker) per scan over the scan period, steady state
+    "tracking.renyi_update_cpu_median_over_period": ("<=", 0.10),
+    "tracking.renyi_update_cpu_max_over_period": ("<=", 0.20),
+    "tracking.voxel_update_cpu_median_over_period": ("<=", 0.10),
+    "tracking.voxel_update_cpu_max_over_period": ("<=", 0.20),
+    # and a window map merge flat from 30 k to 3 M explored voxels (1.5: no growth beyond
+    # the noise of a 0.5 ms figure)
+    "tracking.window_merge_3M_over_30k": ("<=", 1.5),
 }
 
 

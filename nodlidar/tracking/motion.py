@@ -351,14 +351,16 @@ class RenyiCost:
             """q_i - q_j per axis; z only off the plane (in it z is 0 and adds nothing)."""
             return qx[i] - qx[j], qy[i] - qy[j], (None if plane else qz[i] - qz[j])
 
-        def within(i, j, dx, dy, dz):
-            """The pairs within the cutoff ``r`` (as query_pairs), kept by index: a random
-            mask of ~70 % True indexes ~4x slower than one flatnonzero and gathers."""
-            d2 = dx * dx + dy * dy
-            if dz is not None:
-                d2 += dz * dz
-            k = np.flatnonzero(d2 <= r * r)
-            return i[k], j[k], dx[k], dy[k], (None if dz is None else dz[k])
+        def drawn_within(i, j):
+            """The drawn pairs within the cutoff ``r`` (as query_pairs), in order, with
+            their :func:`diffs`: one compiled pass, where numpy made ~10 arrays of all the
+            drawn pairs, most of which are dropped (the same values)."""
+            from ._kernel import pairs_within  # numba: loaded when first used
+
+            i, j, dx, dy, dz = pairs_within(qx, qy, qz, np.ascontiguousarray(i, np.int64),
+                                            np.ascontiguousarray(j, np.int64), r * r,
+                                            not plane)
+            return i, j, dx, dy, (None if plane else dz)
 
         #: weight of one pair in the sum (1: every pair within the cutoff is in the list)
         self.w = 1.0
@@ -369,12 +371,12 @@ class RenyiCost:
             i = rng.integers(0, n, m)
             j = rng.integers(0, n - 1, m)
             j += j >= i  # uniform over the ordered pairs i != j: each stands for one pair
-            i, j, dx, dy, dz = within(i, j, *diffs(i, j))
+            i, j, dx, dy, dz = drawn_within(i, j)
             self.w = n * (n - 1) / (2.0 * m)
         elif sample_pairs and lab is not None:
             i, j, self.w = _draw_label_pairs(lab, max_points * (max_points - 1) // 2,
                                              np.random.default_rng(self.n))
-            i, j, dx, dy, dz = within(i, j, *diffs(i, j))
+            i, j, dx, dy, dz = drawn_within(i, j)
         else:
             pairs = cKDTree(q).query_pairs(r, output_type="ndarray")
             if lab is not None:
@@ -432,26 +434,16 @@ def _seen_by_both(p_xy: np.ndarray, dt: np.ndarray, edges: np.ndarray, i: np.nda
     """(m,) bool: for each pair ``(i, j)`` with ``dt = t[j] - t[i]`` (m,) [s], point ``i``
     moved at velocity ``c`` to ``t[j]`` lies on the seen side of ``j``'s cut lines, and
     ``j`` moved to ``t[i]`` of ``i``'s (``edges`` (n, L, >=5),
-    :func:`~nodlidar.tracking.segment.cut_edges`; NaN: no line), within ``tol_m``. Only the
-    pairs whose other point has a line are computed, from 1D gathers (several times faster
-    than gathering rows)."""
-    seen = np.ones(len(i), bool)
-    px, py = np.ascontiguousarray(p_xy[:, 0]), np.ascontiguousarray(p_xy[:, 1])
-    for k in range(edges.shape[1]):
-        has = np.isfinite(edges[:, k, 4])
-        if not has.any():
-            continue
-        ax, ay, ux, uy, side = (np.ascontiguousarray(edges[:, k, col]) for col in range(5))
-        for moved, other, sign in ((i, j, 1.0), (j, i, -1.0)):
-            sel = np.flatnonzero(has[other])
-            if not len(sel):
-                continue
-            pm, po, d = moved[sel], other[sel], sign * dt[sel]
-            qx = px[pm] + c[0] * d
-            qy = py[pm] + c[1] * d
-            cross = ux[po] * (qy - ay[po]) - uy[po] * (qx - ax[po])
-            seen[sel[side[po] * cross < -tol_m]] = False
-    return seen
+    :func:`~nodlidar.tracking.segment.cut_edges`; NaN: no line), within ``tol_m``. One
+    compiled pass over the pairs (:func:`~nodlidar.tracking._kernel.seen_by_both`)."""
+    from ._kernel import seen_by_both  # numba: loaded when first used
+
+    return seen_by_both(np.ascontiguousarray(p_xy[:, 0], float),
+                        np.ascontiguousarray(p_xy[:, 1], float),
+                        np.ascontiguousarray(dt, float),
+                        np.ascontiguousarray(edges[:, :, :5], float),
+                        np.ascontiguousarray(i, np.int64), np.ascontiguousarray(j, np.int64),
+                        float(c[0]), float(c[1]), float(tol_m))
 
 
 def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.ndarray, np.ndarray]:

@@ -199,21 +199,32 @@ class VoxelMap:
         return np.where(np.isfinite(r), free, self.carve_no_return_m)
 
     def free_keys(self, start: np.ndarray, direction: np.ndarray, range_m: np.ndarray,
-                  offset_m: np.ndarray, margin_scale: np.ndarray | float = 1.0) -> np.ndarray:
+                  offset_m: np.ndarray, margin_scale: np.ndarray | float = 1.0,
+                  compiled: bool = True) -> np.ndarray:
         """Unique keys of the voxels the rays traverse (before the margin, times
         ``margin_scale``: :meth:`free_length`).
 
-        The keys of :func:`carve_samples`' points (``grid.keys``), computed axis by axis on
-        1D arrays with the same float operations (the (m, 3) sample array is never made:
-        this is the online segmentation's largest cost, ~60 k samples per scan).
+        The keys of :func:`carve_samples`' points (``grid.keys``), with the same float
+        operations: in one compiled loop over the samples
+        (:func:`~nodlidar.tracking._kernel.ray_sample_keys`; this is the online
+        segmentation's largest cost, ~50 k samples per scan), or with ``compiled=False``
+        (and for rays that are not finite) axis by axis on 1D arrays in numpy (the (m, 3)
+        sample array is never made). Both give the same keys.
         """
         length = np.nan_to_num(np.asarray(self.free_length(range_m, offset_m, margin_scale),
                                           float), nan=0.0)
         cnt = np.maximum(np.ceil(length / self.spacing).astype(np.int64), 0)
         if cnt.sum() == 0:
             return np.zeros(0, np.int64)
-        s = _ray_params(cnt, self.spacing)
         start, direction = np.asarray(start, float), np.asarray(direction, float)
+        if compiled and np.isfinite(start).all() and np.isfinite(direction).all():
+            from ._kernel import ray_sample_keys  # numba: loaded when first carving
+
+            return np.sort(ray_sample_keys(  # distinct keys, unsorted
+                np.ascontiguousarray(start), np.ascontiguousarray(direction), cnt,
+                self.spacing, np.asarray(self.grid.origin_m, float), self.grid.voxel_m,
+                _OFF))
+        s = _ray_params(cnt, self.spacing)
         k = np.zeros(len(s), np.int64)
         for a, shift in ((0, 42), (1, 21), (2, 0)):
             q = np.repeat(direction[:, a], cnt)

@@ -1,0 +1,190 @@
+"""The tracking's compiled loops (nodlidar/tracking/_kernel.py) give, bit for bit, what the
+numpy formulas they replace gave: on simulated scans of the paper's sensor and on random
+rays and pairs (the numpy formulas are written out here, as they stood)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nodlidar.tracking._kernel import pairs_within, ray_sample_keys
+from nodlidar.tracking.motion import RenyiCost, compensate
+from nodlidar.tracking.voxels import _OFF, VoxelGrid, VoxelMap, unique_keys
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def design():
+    from nodlidar.solver import solve
+    from nodlidar.spec import load_design
+
+    return solve(load_design(ROOT / "design" / "urg04lx-paper.toml"))
+
+
+def _keys_numpy(start, direction, cnt, spacing, origin, voxel):
+    """The numpy carving keys (VoxelMap.free_keys before the kernel), consecutive repeats
+    dropped."""
+    first = np.cumsum(cnt) - cnt
+    s = (np.arange(cnt.sum()) - np.repeat(first, cnt)) * spacing
+    k = np.zeros(len(s), np.int64)
+    for a, shift in ((0, 42), (1, 21), (2, 0)):
+        q = np.repeat(direction[:, a], cnt)
+        q *= s
+        q += np.repeat(start[:, a], cnt)
+        q -= origin[a]
+        q /= voxel
+        idx = np.floor(q, out=q).astype(np.int64)
+        idx += _OFF
+        idx <<= shift
+        k |= idx
+    if len(k) > 1:
+        k = k[np.flatnonzero(np.concatenate([[True], k[1:] != k[:-1]]))]
+    return k
+
+
+@pytest.mark.parametrize("origin, voxel", [((0.0, 0.0, 0.0), 0.1), ((0.013, -0.27, 1.1), 0.07)])
+def test_ray_sample_keys_are_the_numpy_keys(origin, voxel):
+    # random rays from around a sensor, some of no length, in every direction (negative
+    # indices too), and rays that start exactly on voxel faces
+    rng = np.random.default_rng(7)
+    n = 700
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    start = rng.uniform(-2, 2, (n, 3))
+    start[:50] = np.round(start[:50] / voxel) * voxel
+    cnt = rng.integers(0, 120, n)
+    cnt[::9] = 0
+    spacing = voxel / 2
+    got = ray_sample_keys(start, d, cnt, spacing, np.array(origin), voxel, _OFF)
+    want = unique_keys(_keys_numpy(start, d, cnt, spacing, origin, voxel))
+    assert len(want) > 10_000  # the hash set grew several times
+    assert got.dtype == np.int64 and np.array_equal(np.sort(got), want)
+    # a key equal to the hash set's empty marker is kept too: with no offset, index -1 on
+    # every axis sets every bit (the numpy formula's key too)
+    far = ray_sample_keys(np.array([[-0.05, -0.05, -0.05]]), np.array([[1.0, 0, 0]]),
+                          np.array([3]), 0.05, np.zeros(3), 0.1, 0)
+    assert far.tolist() == [-1]
+
+
+def test_free_keys_compiled_and_numpy_agree_on_simulated_scans(design):
+    # the online segmentation's own carving: every scan of the paper's scenario, both ways
+    from nodlidar.tracking.segment import SegmentConfig, grazing_secant
+    from nodlidar.tracking.simdata import simulate_scans
+
+    cfg = SegmentConfig()
+    m = VoxelMap(VoxelGrid(cfg.voxel_m), margin_voxels=cfg.margin_voxels,
+                 range_sigma=design.lidar.range_sigma_m, carve_no_return_m=cfg.carve_no_return_m)
+    total = 0
+    for scan in simulate_scans(design, 12, mirrors_deployed=True, seed=3):
+        args = (scan.ray_start, scan.ray_dir, scan.range_m, scan.ray_offset,
+                grazing_secant(scan))
+        a = m.free_keys(*args)
+        assert np.array_equal(a, m.free_keys(*args, compiled=False))
+        assert np.array_equal(a, unique_keys(a))  # sorted, unique
+        total += len(a)
+    assert total > 10_000
+
+
+def _within_numpy(qx, qy, qz, i, j, r2, use_z):
+    """The numpy pair filter (RenyiCost before the kernel)."""
+    dx, dy = qx[i] - qx[j], qy[i] - qy[j]
+    d2 = dx * dx + dy * dy
+    dz = qz[i] - qz[j] if use_z else None
+    if use_z:
+        d2 += dz * dz
+    k = np.flatnonzero(d2 <= r2)
+    return i[k], j[k], dx[k], dy[k], (dz[k] if use_z else np.zeros(0))
+
+
+@pytest.mark.parametrize("use_z", [False, True])
+def test_pairs_within_are_the_numpy_pairs(use_z):
+    rng = np.random.default_rng(11)
+    n, m = 900, 200_000
+    q = rng.normal(scale=0.3, size=(n, 3))
+    qx, qy, qz = (np.ascontiguousarray(q[:, k]) for k in range(3))
+    i = rng.integers(0, n, m)
+    j = rng.integers(0, n - 1, m)
+    j += j >= i
+    r = 0.1 + 0.08 * 3.7
+    got = pairs_within(qx, qy, qz, i, j, r * r, use_z)
+    want = _within_numpy(qx, qy, qz, i, j, r * r, use_z)
+    assert 0 < len(got[0]) < m
+    for g, w in zip(got, want):
+        assert g.dtype == w.dtype and np.array_equal(g, w)
+    # a pair exactly at the cutoff is kept, as d2 <= r2 keeps it
+    one = pairs_within(np.array([0.0, 0.3]), np.array([0.0, 0.4]), np.zeros(2),
+                       np.array([0]), np.array([1]), 0.3 * 0.3 + 0.4 * 0.4, False)
+    assert len(one[0]) == 1
+
+
+def test_renyi_cost_of_drawn_pairs_is_unchanged():
+    # a cloud larger than max_points: the pairs are drawn and filtered by the kernel; the
+    # cost and its pair arrays against the numpy filter applied to the same draw
+    rng = np.random.default_rng(2)
+    n = 1500
+    t = np.sort(rng.uniform(0, 3.0, n))
+    p = np.column_stack([rng.normal(scale=0.2, size=(n, 2)) + np.outer(t, [0.3, 0.1]),
+                         rng.uniform(0, 1.7, n)])
+    cost = RenyiCost(p, t, 3.0, 0.02, [0.3, 0.1], max_dv_m_s=0.08, subsample="pairs")
+    q = compensate(np.column_stack([p[:, :2], np.zeros(n)]), t, [0.3, 0.1], 3.0)
+    qx, qy, qz = (np.ascontiguousarray(q[:, k]) for k in range(3))
+    dr = np.random.default_rng(n)
+    mm = 800 * 799 // 2
+    i = dr.integers(0, n, mm)
+    j = dr.integers(0, n - 1, mm)
+    j += j >= i
+    r = 5.0 * 0.02 + 0.08 * float(np.ptp(t))
+    wi, wj, wx, wy, _ = _within_numpy(qx, qy, qz, i, j, r * r, False)
+    assert cost.n_pairs == len(wi)
+    assert np.array_equal(cost.dx, wx.astype(np.float32))
+    assert np.array_equal(cost.dy, wy.astype(np.float32))
+    assert np.array_equal(cost.dt, (t[wj] - t[wi]).astype(np.float32))
+
+
+def _seen_numpy(p_xy, dt, edges, i, j, c, tol_m=1e-3):
+    """The numpy cut-line test (motion._seen_by_both before the kernel)."""
+    seen = np.ones(len(i), bool)
+    px, py = np.ascontiguousarray(p_xy[:, 0]), np.ascontiguousarray(p_xy[:, 1])
+    for k in range(edges.shape[1]):
+        has = np.isfinite(edges[:, k, 4])
+        if not has.any():
+            continue
+        ax, ay, ux, uy, side = (np.ascontiguousarray(edges[:, k, col]) for col in range(5))
+        for moved, other, sign in ((i, j, 1.0), (j, i, -1.0)):
+            sel = np.flatnonzero(has[other])
+            if not len(sel):
+                continue
+            pm, po, d = moved[sel], other[sel], sign * dt[sel]
+            qx = px[pm] + c[0] * d
+            qy = py[pm] + c[1] * d
+            cross = ux[po] * (qy - ay[po]) - uy[po] * (qx - ax[po])
+            seen[sel[side[po] * cross < -tol_m]] = False
+    return seen
+
+
+def test_seen_by_both_is_the_numpy_test():
+    # random cut lines on a third of the points (two per point, some with one only), both
+    # sides, points near the lines (within the tolerance too)
+    from nodlidar.tracking.motion import _seen_by_both
+
+    rng = np.random.default_rng(4)
+    n, m = 600, 50_000
+    p = rng.uniform(-0.5, 0.5, (n, 2))
+    t = rng.uniform(0, 2, n)
+    ang = rng.uniform(0, 2 * np.pi, (n, 2))
+    edges = np.full((n, 2, 6), np.nan)
+    edges[:, :, 0:2] = rng.uniform(-0.3, 0.3, (n, 2, 2))
+    edges[:, :, 2], edges[:, :, 3] = np.cos(ang), np.sin(ang)
+    edges[:, :, 4] = rng.choice([-1.0, 1.0], (n, 2))
+    edges[rng.random(n) < 0.66, :, 4] = np.nan
+    edges[rng.random(n) < 0.2, 1, 4] = np.nan
+    i = rng.integers(0, n, m)
+    j = rng.integers(0, n, m)
+    dt = t[j] - t[i]
+    c = np.array([0.31, -0.12])
+    got = _seen_by_both(p, dt, edges, i, j, c)
+    want = _seen_numpy(p, dt, edges, i, j, c)
+    assert 0.1 < got.mean() < 0.95 and np.array_equal(got, want)
