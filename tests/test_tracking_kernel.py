@@ -188,3 +188,33 @@ def test_seen_by_both_is_the_numpy_test():
     got = _seen_by_both(p, dt, edges, i, j, c)
     want = _seen_numpy(p, dt, edges, i, j, c)
     assert 0.1 < got.mean() < 0.95 and np.array_equal(got, want)
+
+
+def test_warm_up_compiles_what_tracking_calls(design, monkeypatch):
+    # after warm_up, tracking a scene (mirrors: cut lines and drawn pairs) compiles nothing
+    # more: the live loop never waits for numba
+    from nodlidar.tracking import _kernel
+    from nodlidar.tracking.segment import OnlineSegmenter, warm_up
+    from nodlidar.tracking.simdata import simulate_scans
+    from nodlidar.tracking.tracker import Tracker, TrackerConfig
+
+    warm_up()
+    names = ("ray_sample_keys", "pairs_within", "seen_by_both")
+    kernels = [getattr(_kernel, n) for n in names]
+    before = [list(k.signatures) for k in kernels]
+    calls = dict.fromkeys(names, 0)
+
+    def counted(name, kernel):
+        def call(*args):
+            calls[name] += 1
+            return kernel(*args)
+        return call
+
+    for n, k in zip(names, kernels):  # the callers import them from the module at each call
+        monkeypatch.setattr(_kernel, n, counted(n, k))
+    seg = OnlineSegmenter(range_sigma=design.lidar.range_sigma_m)
+    trk = Tracker(TrackerConfig())
+    for scan in simulate_scans(design, 45, mirrors_deployed=True, seed=0):
+        trk.update(seg.update(scan))
+    assert min(calls.values()) > 0, calls  # every kernel ran
+    assert [list(k.signatures) for k in kernels] == before

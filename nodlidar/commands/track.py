@@ -137,6 +137,9 @@ def run(args: argparse.Namespace) -> int:
         show(trk.update(seg.update(scan_points)))
 
     if args.recording == "live" and not args.sim:
+        from ..tracking.segment import warm_up
+
+        warm_up()  # compiled now, not inside the capture's first callback
         _live(args, step)
         return 0
     if scans is None:

@@ -173,10 +173,11 @@ def build_tracking(session: Session, sensor_height_m: float) -> tuple[
     tracker cannot be built (kept loose: tracking is optional in a view)."""
     try:
         from ..tracking.recording import LiveScans
-        from ..tracking.segment import OnlineSegmenter
+        from ..tracking.segment import OnlineSegmenter, warm_up
         from ..tracking.tracker import Tracker, TrackerConfig
 
         design, model, lift_left, lift_right = _opened(session)
+        warm_up()  # the tracking's compiled loops, before the first scan reaches them
         live = LiveScans(model, (lift_left, lift_right), sensor_height_m=sensor_height_m)
         return (live, OnlineSegmenter(range_sigma=design.lidar.range_sigma_m),
                 Tracker(TrackerConfig())), None

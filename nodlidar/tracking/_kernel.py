@@ -25,7 +25,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["ray_sample_keys", "pairs_within", "seen_by_both"]
+__all__ = ["ray_sample_keys", "pairs_within", "seen_by_both", "warm_up"]
 
 _jit = numba.njit(cache=True, nogil=True)
 
@@ -181,3 +181,14 @@ def seen_by_both(px: np.ndarray, py: np.ndarray, dt: np.ndarray, edges: np.ndarr
                 ok &= not (edges[po, k, 4] * cross < -tol_m)
         seen[p] = ok
     return seen
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every loop here now, with the argument types
+    the tracking passes, not at the first scan: a first compile takes ~1-3 s (~0.2 s to
+    load from the cache), which inside a live capture's callback would stall it."""
+    z = np.zeros((1, 3))
+    ray_sample_keys(z, z, np.ones(1, np.int64), 0.05, np.zeros(3), 0.1, 1 << 20)
+    one, idx = np.zeros(1), np.zeros(1, np.int64)
+    pairs_within(one, one, one, idx, idx, 1.0, False)
+    seen_by_both(one, one, one, np.zeros((1, 2, 5)), idx, idx, 0.0, 0.0, 1e-3)

@@ -34,7 +34,8 @@ from .voxels import VoxelGrid, VoxelMap, WindowVoxelMap, carve_samples, unique_k
 __all__ = ["SegmentConfig", "Segmented", "cluster_points", "segment_batch",
            "OnlineSegmenter", "window_cut", "cut_edges", "grazing_secant", "seen_apart",
            "hidden_between",
-           "seen_through", "behind_or_through", "column_rays", "silhouette_ends"]
+           "seen_through", "behind_or_through", "column_rays", "silhouette_ends",
+           "connected_labels", "warm_up"]
 
 
 @dataclass(frozen=True)
@@ -1182,6 +1183,16 @@ def segment_batch(scans: list[ScanPoints], cfg: SegmentConfig = SegmentConfig(),
     for s in scans:
         integrate(vmap, s, cfg)
     return [classify(vmap, s, cfg) for s in scans]
+
+
+def warm_up() -> None:
+    """Compile the tracking's loops (:mod:`nodlidar.tracking._kernel`: this module's carving,
+    the tracker's Rényi pairs) now: a live run calls this before streaming, as
+    :func:`nodlidar.runtime.assembly.warm_up` for the assembly, so that the first scan's
+    compile does not stall the capture."""
+    from ._kernel import warm_up as compile_kernels
+
+    compile_kernels()
 
 
 class OnlineSegmenter:
