@@ -3,7 +3,7 @@ passes over one large temporary each.
 
 - :func:`ray_sample_keys`: the voxel keys of the carving samples along every ray
   (:meth:`~nodlidar.tracking.voxels.VoxelMap.free_keys`): ~35 array passes over ~45 k
-  samples per scan and a sort of them in numpy, one loop and a hash set here;
+  samples per scan and a sort of them in numpy, one loop and a bitmap here;
 - :func:`pairs_within`: of the pairs of points a Rényi cost draws at random, those within
   its cutoff, with their offsets (:class:`~nodlidar.tracking.motion.RenyiCost`): ~10
   passes over ~320 k drawn pairs, most of them dropped, in numpy;
@@ -20,46 +20,45 @@ Compiled with ``cache=True`` (the first call in a fresh environment compiles) an
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 
 __all__ = ["ray_sample_keys", "pairs_within", "seen_by_both", "warm_up"]
 
 _jit = numba.njit(cache=True, nogil=True)
+# inlined at numba's IR level (a call to a separate compiled function costs ~13 ns)
+_inline = numba.njit(cache=True, nogil=True, inline="always")
 
 
-_HASH_MUL = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing: 2**64 / golden ratio
+_BOX_BITS_MAX = 1 << 26  # 8 MB of bitmap; a larger box (rays of ~100 m) takes the sort
 
 
-@_jit
-def _insert(table: np.ndarray, bits: int, key: np.int64) -> bool:
-    """Put ``key`` (not -1) in the open-addressing set ``table`` (-1: empty slot; size
-    ``2**bits``); True if it was not there."""
-    mask = (1 << bits) - 1
-    h = np.int64((np.uint64(key) * _HASH_MUL) >> np.uint64(64 - bits))
-    while True:
-        v = table[h]
-        if v == key:
-            return False
-        if v == -1:
-            table[h] = key
-            return True
-        h = (h + 1) & mask
+@_inline
+def _index(start: np.ndarray, direction: np.ndarray, r: int, k: int, spacing: float,
+           origin: np.ndarray, voxel: float, a: int) -> np.int64:
+    """``floor((start[r, a] + (k spacing) direction[r, a] - origin[a]) / voxel)`` with
+    numpy's operations in numpy's order."""
+    q = direction[r, a] * (k * spacing)
+    q += start[r, a]
+    q -= origin[a]
+    q /= voxel
+    f = np.int64(q)  # floor: truncation, and a step down below zero (math.floor is a libm
+    if f > q:        # call: ~3x the loop)
+        f -= 1
+    return f
 
 
 @_jit
 def ray_sample_keys(start: np.ndarray, direction: np.ndarray, cnt: np.ndarray,
                     spacing: float, origin: np.ndarray, voxel: float,
                     off: int) -> np.ndarray:
-    """The distinct voxel keys of the samples ``start_r + (k spacing) dir_r``,
-    ``k = 0 .. cnt_r - 1``, of every ray ``r`` (in no particular order).
+    """The sorted distinct voxel keys of the samples ``start_r + (k spacing) dir_r``,
+    ``k = 0 .. cnt_r - 1``, of every ray ``r``.
 
     Parameters
     ----------
     start, direction : (n, 3) float64
-        Rays [m].
+        Rays [m] (finite).
     cnt : (n,) int64
         Samples per ray (>= 0).
     spacing : float
@@ -71,51 +70,93 @@ def ray_sample_keys(start: np.ndarray, direction: np.ndarray, cnt: np.ndarray,
 
     Returns
     -------
-    (m,) int64 distinct keys ``(i + off) << 42 | (j + off) << 21 | (k + off)``,
-    ``i = floor((p - origin) / voxel)`` per axis, as computed axis by axis in numpy. A
-    scan's ~45 k samples fall in ~1.5 k voxels: a hash set keeps each once (sorting all
-    of them cost as much as computing them).
+    (m,) int64 sorted distinct keys ``(i + off) << 42 | (j + off) << 21 | (k + off)``,
+    ``i = floor((p - origin) / voxel)`` per axis, as computed axis by axis in numpy.
+
+    A scan's ~45 k samples fall in ~1.5 k voxels of a box a few metres wide: each sample
+    sets its voxel's bit in a bitmap of the box, and reading the bitmap in order gives the
+    keys sorted (the key's order is the box's (i, j, k) order). Sorting the samples' keys
+    cost as much as computing them. Indices outside the key's 21 bits, or a box of more
+    than ``_BOX_BITS_MAX`` voxels, fall back to a sort.
     """
-    bits = 12
-    table = np.full(1 << bits, -1, np.int64)
-    n_in = 0
-    minus_one = False  # the empty slot's marker as a key (an index far off the grid)
-    prev = np.int64(0)
-    started = False
+    # the box: along a ray each index is monotone in k (each float step is), so its ends
+    # bound it
+    lo = np.full(3, np.iinfo(np.int64).max, np.int64)
+    hi = np.full(3, np.iinfo(np.int64).min, np.int64)
+    for r in range(len(cnt)):
+        if cnt[r] > 0:
+            for k in (0, cnt[r] - 1):
+                for a in range(3):
+                    f = _index(start, direction, r, k, spacing, origin, voxel, a)
+                    lo[a] = min(lo[a], f)
+                    hi[a] = max(hi[a], f)
+    if lo[0] > hi[0]:
+        return np.empty(0, np.int64)
+    span = hi - lo + 1
+    inside = True
+    for a in range(3):
+        inside = inside and lo[a] + off >= 0 and hi[a] + off < (1 << 21)
+    vol = span[0] * span[1] * span[2]
+    if not inside or vol > _BOX_BITS_MAX:
+        keys = np.empty(int(cnt.sum()), np.int64)
+        m = 0
+        for r in range(len(cnt)):
+            for k in range(cnt[r]):
+                key = np.int64(0)
+                for a in range(3):
+                    f = _index(start, direction, r, k, spacing, origin, voxel, a)
+                    key |= (f + off) << (42 - 21 * a)
+                keys[m] = key
+                m += 1
+        keys = np.sort(keys)
+        out = np.empty(m, np.int64)
+        u = 0
+        for t in range(m):
+            if u == 0 or keys[t] != out[u - 1]:
+                out[u] = keys[t]
+                u += 1
+        return out[:u]
+    words = np.zeros((vol + 63) >> 6, np.uint64)
+    u = 0
     for r in range(len(cnt)):
         for k in range(cnt[r]):
-            s = k * spacing
-            key = np.int64(0)
+            b = 0
             for a in range(3):
-                q = direction[r, a] * s
-                q += start[r, a]
-                q -= origin[a]
-                q /= voxel
-                key |= (np.int64(math.floor(q)) + off) << (42 - 21 * a)
-            if started and key == prev:  # along a ray most samples share the previous voxel
-                continue
-            prev, started = key, True
-            if key == -1:
-                minus_one = True
-                continue
-            if _insert(table, bits, key):
-                n_in += 1
-                if 2 * n_in > len(table):  # load 1/2: twice the size, keys put again
-                    old = table
-                    bits += 1
-                    table = np.full(1 << bits, -1, np.int64)
-                    for v in old:
-                        if v != -1:
-                            _insert(table, bits, v)
-    out = np.empty(n_in + (1 if minus_one else 0), np.int64)
-    m = 0
-    for v in table:
-        if v != -1:
-            out[m] = v
-            m += 1
-    if minus_one:
-        out[m] = -1
+                b = b * span[a] + (_index(start, direction, r, k, spacing, origin, voxel, a)
+                                   - lo[a])
+            w, bit = b >> 6, np.uint64(1) << np.uint64(b & 63)
+            if not words[w] & bit:
+                words[w] |= bit
+                u += 1
+    out = np.empty(u, np.int64)
+    u = 0
+    for w in range(len(words)):
+        x = words[w]
+        while x:
+            low = x & (~x + np.uint64(1))  # the lowest set bit
+            b = (w << 6) + _bit_index(low)
+            x ^= low
+            kk = b % span[2]
+            jj = (b // span[2]) % span[1]
+            ii = b // (span[1] * span[2])
+            out[u] = (((ii + lo[0]) + off) << 42) | (((jj + lo[1]) + off) << 21) \
+                | ((kk + lo[2]) + off)
+            u += 1
     return out
+
+
+# de Bruijn's sequence for 64 bits and the bit index of each of its 6-bit windows: the
+# index of a word's lowest set bit in one multiply and a lookup
+_DEBRUIJN = np.uint64(0x03F79D71B4CB0A89)
+_DEBRUIJN_INDEX = np.zeros(64, np.int64)
+for _i in range(64):
+    _DEBRUIJN_INDEX[(((1 << _i) * 0x03F79D71B4CB0A89) & (2**64 - 1)) >> 58] = _i
+
+
+@_inline
+def _bit_index(low: np.uint64) -> int:
+    """The index of the one set bit of ``low``."""
+    return _DEBRUIJN_INDEX[np.int64((low * _DEBRUIJN) >> np.uint64(58))]
 
 
 @_jit

@@ -220,10 +220,10 @@ class VoxelMap:
         if compiled and np.isfinite(start).all() and np.isfinite(direction).all():
             from ._kernel import ray_sample_keys  # numba: loaded when first carving
 
-            return np.sort(ray_sample_keys(  # distinct keys, unsorted
+            return ray_sample_keys(  # sorted distinct keys
                 np.ascontiguousarray(start), np.ascontiguousarray(direction), cnt,
                 self.spacing, np.asarray(self.grid.origin_m, float), self.grid.voxel_m,
-                _OFF))
+                _OFF)
         s = _ray_params(cnt, self.spacing)
         k = np.zeros(len(s), np.int64)
         for a, shift in ((0, 42), (1, 21), (2, 0)):
