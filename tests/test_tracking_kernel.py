@@ -1,6 +1,7 @@
 """The tracking's compiled loops (nodlidar/tracking/_kernel.py) give, bit for bit, what the
 numpy formulas they replace gave: on simulated scans of the paper's sensor and on random
-rays and pairs (the numpy formulas are written out here, as they stood)."""
+rays and pairs. The carving keys' numpy formula is ``VoxelMap.free_keys(compiled=False)``;
+the pair filter's and the cut-line test's are written out here, as they stood."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pytest
 
 from nodlidar.tracking._kernel import pairs_within, ray_sample_keys
 from nodlidar.tracking.motion import RenyiCost, compensate
-from nodlidar.tracking.voxels import _OFF, VoxelGrid, VoxelMap, unique_keys
+from nodlidar.tracking.voxels import VoxelGrid, VoxelMap, unique_keys
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,46 +25,26 @@ def design():
     return solve(load_design(ROOT / "design" / "urg04lx-paper.toml"))
 
 
-def _keys_numpy(start, direction, cnt, spacing, origin, voxel):
-    """The numpy carving keys (VoxelMap.free_keys before the kernel), consecutive repeats
-    dropped."""
-    first = np.cumsum(cnt) - cnt
-    s = (np.arange(cnt.sum()) - np.repeat(first, cnt)) * spacing
-    k = np.zeros(len(s), np.int64)
-    for a, shift in ((0, 42), (1, 21), (2, 0)):
-        q = np.repeat(direction[:, a], cnt)
-        q *= s
-        q += np.repeat(start[:, a], cnt)
-        q -= origin[a]
-        q /= voxel
-        idx = np.floor(q, out=q).astype(np.int64)
-        idx += _OFF
-        idx <<= shift
-        k |= idx
-    if len(k) > 1:
-        k = k[np.flatnonzero(np.concatenate([[True], k[1:] != k[:-1]]))]
-    return k
-
-
 @pytest.mark.parametrize("origin, voxel", [((0.0, 0.0, 0.0), 0.1), ((0.013, -0.27, 1.1), 0.07)])
 def test_ray_sample_keys_are_the_numpy_keys(origin, voxel):
-    # random rays from around a sensor, some of no length, in every direction (negative
-    # indices too), and rays that start exactly on voxel faces
+    # random rays from around a sensor in every direction (negative indices too), some
+    # with no return (nothing carved), some starting exactly on voxel faces: the kernel's
+    # keys against free_keys' numpy formula (compiled=False)
     rng = np.random.default_rng(7)
     n = 700
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1)[:, None]
     start = rng.uniform(-2, 2, (n, 3))
     start[:50] = np.round(start[:50] / voxel) * voxel
-    cnt = rng.integers(0, 120, n)
-    cnt[::9] = 0
-    spacing = voxel / 2
-    got = ray_sample_keys(start, d, cnt, spacing, np.array(origin), voxel, _OFF)
-    want = unique_keys(_keys_numpy(start, d, cnt, spacing, origin, voxel))
-    assert len(want) > 10_000  # the hash set grew several times
+    r = rng.uniform(0.0, 6.0, n)
+    r[::9] = np.nan
+    m = VoxelMap(VoxelGrid(voxel, origin), margin_voxels=1.5)
+    want = m.free_keys(start, d, r, np.zeros(n), compiled=False)
+    assert len(want) > 10_000 and np.array_equal(want, unique_keys(want))
+    got = m.free_keys(start, d, r, np.zeros(n))
     assert got.dtype == np.int64 and np.array_equal(got, want)  # sorted, distinct
-    # a key equal to the hash set's empty marker is kept too: with no offset, index -1 on
-    # every axis sets every bit (the numpy formula's key too)
+    # a key equal to every index bit set (index -1 with no offset) takes the sort path:
+    # outside the key's bits
     far = ray_sample_keys(np.array([[-0.05, -0.05, -0.05]]), np.array([[1.0, 0, 0]]),
                           np.array([3]), 0.05, np.zeros(3), 0.1, 0)
     assert far.tolist() == [-1]
