@@ -6,7 +6,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-fast bench lint clean venv
+.PHONY: demo test test-fast bench lint clean venv constraints
 
 venv: $(STAMP)
 
@@ -14,7 +14,9 @@ venv: $(STAMP)
 # Debian machine lacks it. Installed through the system's package manager when we may.
 SYSLIBS := libusb-1.0-0
 
-$(STAMP): pyproject.toml
+# constraints.txt pins every package to the versions the suite last passed with (see its
+# header); pyproject.toml keeps loose lower bounds for library users.
+$(STAMP): pyproject.toml constraints.txt
 	@ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || { \
 	  command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ] && \
 	  { apt-get install -y -qq $(SYSLIBS) >/dev/null 2>&1 || \
@@ -22,7 +24,7 @@ $(STAMP): pyproject.toml
 	  echo "note: $(SYSLIBS) not installed; the Open3D reader tests will skip"
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --upgrade --quiet pip
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet -c constraints.txt -e '.[dev]'
 	@touch $(STAMP)
 
 demo: $(STAMP)
@@ -49,6 +51,11 @@ bench: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check nodlidar tests benchmarks notebooks
 	$(PY) -m mypy
+
+# after upgrading packages in .venv and a passing `make test`: pin what is installed now
+constraints: $(STAMP)
+	@{ sed -n '/^#/p' constraints.txt; $(PY) -m pip freeze --all --exclude-editable | grep -v '^pip=='; } > constraints.txt.new
+	@mv constraints.txt.new constraints.txt && echo "constraints.txt: $$(grep -vc '^#' constraints.txt) pins"
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
