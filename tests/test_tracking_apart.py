@@ -512,7 +512,10 @@ def test_a_young_track_does_not_jump_to_the_person_beside_its_own(seed):
         return evaluate(res)["movers"]
 
     for m in run(True):
-        assert m["id_switches"] == 0 and len(m["tracks"]) == 1 and m["purity"] >= 0.99, m
+        # (a track never confirmed, e.g. pending on a track seen once, is no identity:
+        # TrackerConfig.reacquire_unique_m)
+        reported = [t for t in m["tracks"] if t not in m["tentative_tracks"]]
+        assert m["id_switches"] == 0 and len(reported) == 1 and m["purity"] >= 0.99, m
     assert sum(m["id_switches"] for m in run(False)) > 0  # the failure, without the hold
 
 

@@ -737,7 +737,10 @@ def test_reacquisition_keeps_the_early_side_by_side_track(design, speed, births)
     reacquire_speed_m_s=1.5, or with reacquire_births_m_s=1.5 (the default: the new
     cluster at scan 26 is nearer to where the lone track was than anything else),
     the scan-3 track takes it back - one track, no switch, and its first velocity estimate
-    (the 2.3 s baseline) within 0.03 m/s and 5 deg of the scene's."""
+    (the 2.3 s baseline) within 0.03 m/s and 5 deg of the scene's. With
+    ``reacquire_unique_m`` (the default since 2026-12-07) the left person, new at scan 26
+    too and about as near, makes it ambiguous: the right one's new track is pending on the
+    scan-3 one until its own motion decides, so this takes the nearer at once (0: off)."""
     from nodlidar.tracking.segment import SegmentConfig
     from nodlidar.tracking.tracker import TrackerConfig
 
@@ -746,7 +749,8 @@ def test_reacquisition_keeps_the_early_side_by_side_track(design, speed, births)
     res = E.run_online(design, "track-side-by-side", 30, seed=1,
                        tracker=TrackerConfig(reacquire_speed_m_s=speed,
                                              reacquire_births_m_s=births,
-                                             follow_inconsistent_fraction=1.0),
+                                             follow_inconsistent_fraction=1.0,
+                                             reacquire_unique_m=0.0),
                        segment=SegmentConfig(fraction_per_window=True))
     right = E.evaluate(res)["movers"][1]
     recs = sorted((r for r in res.records if r["counts"].get(2, 0)), key=lambda r: r["scan"])

@@ -429,6 +429,21 @@ class TrackerConfig:
         with this, no false track. Over the harness (seeds 0-7, 1568 runs) false tracks
         7 / 11 -> 6 / 10 and switches 34 -> 33 (mirrors / lifted), no mover-run later
         (docs/tracking.md, "Fourteenth session"). False: any continuation within reach.
+    reacquire_unique_m : float
+        A track seen once (no velocity yet) and unseen for more than ``turn_scans`` scans
+        is not given the nearest new object when another moving object that appeared since
+        it was seen (a new cluster, or one a track born since took) is at most this much
+        [m] farther from its place: one sighting gives no velocity to tell them apart, and
+        the nearer is not surely it. Each new object within that band starts a track
+        pending on it, and the one whose own path, traced back at its velocity, passes
+        within ``stitch_turned_m`` of the sighting at its time continues it
+        (:meth:`Tracker._stitch`, as for a moving track lost in a turn); none does when a
+        track born since passes nearer, and then the track seen once ends unconfirmed: a
+        report a scan or two later instead of a wrong identity. Measured
+        (``benchmarks/heldout/y-three.toml``, mirrors, seed 0): the person seen once at
+        scan 1 behind the front one was 0.52 m on when seen again at scan 27, and the
+        person beside them had walked to 0.24 m from the sighting; the track took the
+        nearer one, an identity switch. 0: off (the nearest, as before).
     reacquire_moving : bool
         Opt-in: the same for a moving track unseen for more than ``turn_scans`` scans,
         within its own speed x the time since it was seen + ``gate_m`` of where it was
@@ -709,6 +724,7 @@ class TrackerConfig:
     reacquire_forget_scans: int = 6
     reacquire_moving: bool = False
     reacquire_gone_only: bool = True
+    reacquire_unique_m: float = 0.5
     stitch_turned_m: float = 0.35
     ambiguous_chi2: float = 1.0
     stitch_stopped: bool = True
@@ -752,6 +768,8 @@ class TrackerConfig:
         require(int(self.reacquire_forget_scans) == self.reacquire_forget_scans
                 and self.reacquire_forget_scans >= 0, "reacquire_forget_scans",
                 self.reacquire_forget_scans, "an integer >= 0 (0: off)")
+        require(self.reacquire_unique_m >= 0, "reacquire_unique_m", self.reacquire_unique_m,
+                ">= 0 m (0: off)")
         require(self.reacquire_speed_m_s >= 0, "reacquire_speed_m_s", self.reacquire_speed_m_s,
                 ">= 0 m/s")
         require(self.gate_chi2 > 0, "gate_chi2", self.gate_chi2, "> 0")
@@ -1371,9 +1389,12 @@ class Tracker:
         lab = getattr(seg, "cluster", None)
         xy = scan.points[:, :2]
         claims: dict[int, list[int]] = {}  # birth -> the lone tracks it may continue
+        lone_pending: dict[int, int] = {}  # birth -> the lone track it may be (ambiguous)
         for a in lone:
             tr = self.tracks[ids[a]]
             d = np.hypot(*(xy - tr.centroids[-1]).T)
+            unique = cfg.reacquire_unique_m > 0 and tr.motion is None
+            near: list[tuple[float, int]] = []  # (jump, birth) within reach
             for b in births:
                 dt = times[b] - tr.t_centroids[-1]
                 # a moving track's object turned at its own speed (within its gate); one
@@ -1394,6 +1415,26 @@ class Tracker:
                     # column wide) had left the column when a scan found something still
                     # there: a ghost on something static
                     continue
+                near.append((jump, b))
+            if unique and near:
+                # the moving objects that appeared since ``tr`` was seen: these births, and
+                # the clusters of tracks born since. Two or more about as near as the
+                # nearest: one sighting gives no velocity to tell them apart, so each
+                # birth among them is a new track pending on ``tr`` and the one whose own
+                # path passes through the sighting continues it (_stitch)
+                reach = cfg.reacquire_births_m_s * (scan.t_mid_s - tr.t_centroids[-1])
+                taken = [float(np.hypot(*(cents[b] - tr.centroids[-1])))
+                         for a2, bs in members.items()
+                         if self.tracks[ids[a2]].t_centroids[0] > tr.t_centroids[-1]
+                         for b in bs]
+                j0 = min([j for j, _ in near] + [j for j in taken if j <= reach])
+                band = [b for j, b in near if j <= j0 + cfg.reacquire_unique_m]
+                if len(band) + sum(j0 <= j <= min(reach, j0 + cfg.reacquire_unique_m)
+                                   for j in taken) >= 2:
+                    for b in band:
+                        lone_pending.setdefault(b, ids[a])
+                    continue
+            for _, b in near:
                 if lab is not None:
                     # no other cluster of the scan (dynamic or not, taken or not) nearer to
                     # where the track was: its object may be there, only not moving in this
@@ -1422,7 +1463,33 @@ class Tracker:
                 priors[a, b] = self._birth(cents[b], times[b])
                 turned.add((a, b))
             got.append(b)
+        for b, tid in lone_pending.items():
+            if b not in got:
+                pending.setdefault(b, tid)
         return [b for b in births if b not in got]
+
+    def _drop_ambiguous_lone(self, scan: ScanPoints, ids: list, assign: dict[int, int],
+                             cents: list, n_dyn: int) -> None:
+        """Take from ``assign`` (cluster -> track index, in place) the clusters given to a
+        track seen once and unseen for more than ``turn_scans`` scans when another moving
+        object that appeared since (a dynamic cluster no track took, or one a track born
+        since took) is nearer to the track's place than the cluster, or at most
+        ``reacquire_unique_m`` [m] farther: either could be its object (TrackerConfig).
+        The cluster is then a birth, and :meth:`_reacquire` decides."""
+        cfg = self.config
+        for b, a in list(assign.items()):
+            tr = self.tracks[ids[a]]
+            if tr.motion is not None or scan.scan - tr.last_scan <= cfg.turn_scans:
+                continue
+            jump = float(np.hypot(*(cents[b] - tr.centroids[-1])))
+            for b2 in range(n_dyn):
+                if b2 == b or (b2 in assign and self.tracks[ids[assign[b2]]].t_centroids[0]
+                               <= tr.t_centroids[-1]):
+                    continue
+                if float(np.hypot(*(cents[b2] - tr.centroids[-1]))) <= \
+                        jump + cfg.reacquire_unique_m:
+                    del assign[b]
+                    break
 
     def _forget_before_gap(self, tr: _Track) -> None:
         """Drop the sighting before the gap from the motion window of ``tr``, re-acquired
@@ -1504,30 +1571,62 @@ class Tracker:
         (``tr`` goes on, pending or as its own track).
         """
         par = self.tracks.get(tr.parent) if tr.parent is not None else None
-        if par is None or par.motion is None or par.last_scan >= tr.scans[0] \
-                or len(tr.scans) > _STITCH_SCANS:
+        if par is None or par.last_scan >= tr.scans[0] or len(tr.scans) > _STITCH_SCANS:
             tr.parent = None
             return None
-        gap = self._meeting_gap(par, tr)
+        lone = par.motion is None  # seen once (TrackerConfig.reacquire_unique_m)
+        gap = self._lone_gap(par, tr) if lone else self._meeting_gap(par, tr)
         if gap is None:
             return None
         for sib in self.tracks.values():
-            if sib is tr or sib.parent != par.track_id or len(sib.scans) > _STITCH_SCANS:
+            if sib is tr:
                 continue
-            # another new track may continue it too (an ambiguous re-acquisition): the one
-            # whose path meets the lost one's nearest does, once each has a motion
-            g = self._meeting_gap(par, sib) if sib.motion is not None else -1.0
+            if sib.parent == par.track_id and len(sib.scans) <= _STITCH_SCANS:
+                # another new track may continue it too (an ambiguous re-acquisition): the
+                # one whose path meets the lost one's nearest does, once each has a motion
+                g = (self._lone_gap(par, sib) if lone else self._meeting_gap(par, sib)) \
+                    if sib.motion is not None else -1.0
+            elif lone and sib.t_centroids and sib.t_centroids[0] > par.t_centroids[-1]:
+                # a track seen once may be any object that appeared since: one whose own
+                # path passes nearer to the sighting is it, not this one
+                g = self._lone_gap(par, sib)
+            else:
+                continue
             if g is not None and g <= gap:
                 return None
-        par.start = len(par.scans)
+        if lone:
+            # the sighting stays in the window (a long baseline), as a re-acquisition's
+            par.reacquired = len(par.scans)
+        else:
+            par.start = len(par.scans)
         for name in ("points", "times", "mirrors", "truth", "weights", "cut", "edges",
                      "sensor_v", "scans", "centroids", "t_centroids", "centroids_uncut"):
             getattr(par, name).extend(getattr(tr, name))
         par.last_scan, par.n_points = tr.last_scan, par.n_points + tr.n_points
         par.motion, par.coarse, par.state, par.hidden = tr.motion, tr.coarse, tr.state, 0
+        par.moved = par.moved or tr.moved  # a lone parent never had a speed to confirm it
+        if lone:
+            # its velocity from the window that holds the sighting too (a long baseline),
+            # superseding the new track's own, as a re-acquisition's would
+            par.motion = None
+            self._estimate(par)
+            if par.motion is not None:
+                c, t = np.asarray(par.centroids[-1]), par.t_centroids[-1]
+                self._update(par, self._birth(c, t), c, par.motion.velocity,
+                             self._velocity_noise(par.motion), first_velocity=True)
         tr.parent = None
         del self.tracks[tr.track_id]
         return par
+
+    def _lone_gap(self, par: _Track, tr: _Track) -> float | None:
+        """How far [m] from where ``par``, a track seen once, was seen the new track
+        ``tr``'s path traced back (at its own velocity) passes at that time, or None beyond
+        ``stitch_turned_m`` or without a velocity (:meth:`_stitch`)."""
+        if tr.motion is None:
+            return None
+        p = np.asarray(tr.centroids[-1]) + tr.x[2:] * (par.t_centroids[-1] - tr.t_centroids[-1])
+        gap = float(np.hypot(*(p - np.asarray(par.centroids[-1]))))
+        return gap if gap <= self.config.stitch_turned_m else None
 
     def _meeting_gap(self, par: _Track, tr: _Track) -> float | None:
         """How near [m] the lost track ``par``'s path from where it was last seen and the
@@ -1877,6 +1976,8 @@ class Tracker:
         if len(ids) and len(objs):
             rows, cols = linear_sum_assignment(cost)
             assign = {int(b): int(a) for a, b in zip(rows, cols) if cost[a, b] < big}
+        if cfg.reacquire_unique_m > 0:
+            self._drop_ambiguous_lone(scan, ids, assign, cents, n_dyn)
         turned = {(a, b) for b, a in assign.items() if (a, b) in turn_priors}
         for a, b in turned:
             priors[a, b] = turn_priors[a, b]
