@@ -125,3 +125,23 @@ def test_side_by_side_along_the_line_of_sight_keeps_both_tracks(seed, scene_runs
     # the failure, without: a second track for the farther person
     off = scene_runs("track-side-by-side-tangential.toml", 90, seed, True, occluded_scans=0)
     assert off["right"]["id_switches"] == 1 and len(off["right"]["tracks"]) == 2, off["right"]
+
+
+def test_two_people_whose_gap_a_nearer_one_hides_are_two_candidates(scene_runs, monkeypatch):
+    """``design/scenes/track-two-behind-one.toml``, mirrors, seed 3: L's track, confirmed
+    at scan 2 on 0.34 m/s at 72 deg (true 0.3 m/s at 90 deg), is met again after the nod's
+    blind part with L and R, the person ahead of L, about equally near its prediction
+    (chi-square 7.50 and 7.36) and the front person hiding the gap between them. They are
+    two objects (together 0.9 m wide, more than ``merge_hidden_extent_m``), so the
+    ambiguity is decided by the new tracks' motions (``TrackerConfig.ambiguous_chi2``).
+    Before (two objects only when seen apart), the track took R: an identity switch."""
+    on = scene_runs("track-two-behind-one.toml", 50, 3, True)
+    assert on["L"]["id_switches"] == 0 and on["L"]["tracks"][0] == 1, on["L"]
+    assert 1 not in on["R"]["tracks"], on["R"]
+    from nodlidar.tracking import segment
+
+    # the failure, with seen_apart alone
+    monkeypatch.setattr(Tracker, "_two_objects",
+                        lambda self, scan, a, b: segment.seen_apart(scan, a, b))
+    off = scene_runs("track-two-behind-one.toml", 50, 3, True)
+    assert off["L"]["id_switches"] == 1 and 1 in off["R"]["tracks"], off
