@@ -17,7 +17,14 @@ import textwrap
 from typing import NoReturn
 
 from . import commands
-from .commands._output import catch_swallowed_interrupts, configure, paragraphs, plain, raise_if_interrupted
+from .commands._output import (
+    catch_swallowed_interrupts,
+    configure,
+    interrupted_teardown,
+    paragraphs,
+    plain,
+    raise_if_interrupted,
+)
 from .errors import NodlidarError
 
 __all__ = ["main", "build_parser", "EXIT_CODES"]
@@ -155,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"nodlidar {args.command}: {exc}", file=sys.stderr)
         return EXIT_OS
     except KeyboardInterrupt:
+        interrupted_teardown()  # what the Ctrl-C left half built fails quietly
         print(f"nodlidar {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:

@@ -17,7 +17,7 @@ import sys
 from collections.abc import Callable
 
 __all__ = ["configure", "status", "progress_disable", "plain", "paragraphs", "LOGGER",
-           "catch_swallowed_interrupts", "raise_if_interrupted"]
+           "catch_swallowed_interrupts", "raise_if_interrupted", "interrupted_teardown"]
 
 LOGGER = "nodlidar"
 
@@ -50,6 +50,7 @@ def configure(verbosity: int) -> None:
 
 
 _swallowed_interrupt = False
+_tearing_down = False  # interrupted_teardown: unraisable exceptions dropped
 
 
 def catch_swallowed_interrupts() -> Callable[[], None]:
@@ -62,8 +63,8 @@ def catch_swallowed_interrupts() -> Callable[[], None]:
     :func:`raise_if_interrupted` raises it again at the next checkpoint (each progress
     update, and before the CLI reports success).
     """
-    global _swallowed_interrupt
-    _swallowed_interrupt = False
+    global _swallowed_interrupt, _tearing_down
+    _swallowed_interrupt = _tearing_down = False
     previous = sys.unraisablehook
 
     def hook(unraisable) -> None:
@@ -71,14 +72,33 @@ def catch_swallowed_interrupts() -> Callable[[], None]:
         if isinstance(unraisable.exc_value, KeyboardInterrupt):
             _swallowed_interrupt = True
             return
+        if _tearing_down:
+            return  # an object the Ctrl-C left half built, failing in __del__: not news
         previous(unraisable)
 
     sys.unraisablehook = hook
 
     def restore() -> None:
+        global _tearing_down
+        if _tearing_down:
+            import gc
+
+            gc.collect()  # (reference cycles: their __del__ under the quiet hook too)
+            _tearing_down = False
         sys.unraisablehook = previous
 
     return restore
+
+
+def interrupted_teardown() -> None:
+    """After a Ctrl-C: until the restorer of :func:`catch_swallowed_interrupts` runs (it
+    also collects what the interrupted frames held), its hook drops every unraisable
+    exception. A ``KeyboardInterrupt`` that lands inside a constructor (e.g. Dask's
+    ``Future.__init__`` while the workers start) leaves an object whose ``__del__`` then
+    fails ("Exception ignored in ... AttributeError"): noise under the one line that says
+    what happened."""
+    global _tearing_down
+    _tearing_down = True
 
 
 def raise_if_interrupted() -> None:
