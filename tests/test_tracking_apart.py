@@ -482,8 +482,13 @@ def test_a_track_never_confirmed_is_no_identity():
     a = run([(1, False), (2, False), (2, True), (2, True)])
     assert a["id_switches"] == 0 and a["tracks"] == [1, 2] and a["tentative_tracks"] == [1]
     assert a["first_scan"] == 1  # scan 0, the first a track (tentative or not) followed it
+    assert a["reported_scan"] == 3  # scan 2, the first a confirmed one did
     b = run([(2, False), (2, True), (1, False), (2, True)])
     assert b["id_switches"] == 0 and b["tentative_tracks"] == [1]
+    assert b["first_scan"] == 1 and b["reported_scan"] == 2
+    # a confirmed track's records from before its confirmation are not a report
+    assert run([(1, False), (1, False), (1, True)])["reported_scan"] == 3
+    assert run([(1, False), (1, False)])["reported_scan"] is None  # never reported
     c = run([(2, False), (2, True), (3, False), (3, True)])  # two reported identities
     assert c["id_switches"] == 1 and c["tentative_tracks"] == []
 

@@ -29,6 +29,9 @@ live tracker reported at the time (causal):
   mirrors deployed the view is the middle of the fan (the sides go to the mirrors), so a
   mover that starts beside the sensor is first seen later than lifted, and its
   ``conv_scan`` can only be later by as much;
+* **reported scan** of a mover (``reported_scan``): the run's scan number (1-based) of
+  the first scan in which a confirmed track followed it, i.e. when the tracker's output
+  first held it (None: never). ``first_scan`` is when any track, tentative or not, did;
 * **in view** of a mover (``view_scan``): the run's scan number (1-based) in which the
   configuration's beams first returned ``VIEW_POINTS`` points or more from it (simulator
   truth, whatever the tracker made of them): the earliest it could be seen at all. Where
@@ -272,6 +275,8 @@ def evaluate(res: OnlineResult, gospa_c_m: float = 1.0) -> dict:
                      "final_err_heading_deg": None,
                      "tentative_tracks": sorted(set(tracks) - confirmed),
                      "first_scan": int(seq[0]["scan"]) + 1 if seq else None,
+                     "reported_scan": next((int(r["scan"]) + 1 for r in seq
+                                            if r["confirmed"]), None),
                      "view_scan": next((int(c["scan"]) + 1 for c in res.returns
                                         if c.get(oid, 0) >= VIEW_POINTS), None)}
         # the estimates the tracker reported: a track never confirmed (one sighting, no
@@ -344,7 +349,8 @@ def _median(xs):
 
 def summary_rows(results: list[dict]) -> list[dict]:
     """One row per (entropy, mover): median online convergence over seeds, mirrors vs
-    lifted, median first scan seen (by a track, and by the beams), converged counts, worst
+    lifted, median first scan seen (by a track, and by the beams) and reported (by a
+    confirmed track; never: later than any), converged counts, worst
     purity, switches, final errors and GOSPA."""
     keys = sorted({(r["entropy"], i, m["mover"]) for r in results
                    for i, m in enumerate(r["movers"])})
@@ -359,6 +365,7 @@ def summary_rows(results: list[dict]) -> list[dict]:
             row[f"conv_scan_{cfg}"] = _median([m.get("conv_scan") for m in ms])
             row[f"first_scan_{cfg}"] = _median([m.get("first_scan") for m in ms])
             row[f"view_scan_{cfg}"] = _median([m.get("view_scan") for m in ms])
+            row[f"reported_scan_{cfg}"] = _median([m.get("reported_scan") for m in ms])
             row[f"conv_after_view_{cfg}"] = _median(
                 [m["conv_scan"] - m["view_scan"]
                  if m.get("conv_scan") is not None and m.get("view_scan") is not None else None
