@@ -152,6 +152,9 @@ def summary(runs: list[dict]) -> dict:
         # once each configuration's beams met the mover (evaluate's conv_after_view)
         "mirrors_later_after_view": later("conv_after_view"),
         "mirrors_later_by_count": later("conv"),
+        # when the tracker's output first held the mover (a confirmed track): a rule that
+        # holds confirmation back shows here, not in convergence
+        "mirrors_reported_later": later("reported_scan"),
         "mirrors_not_converged_where_lifted": [
             f"{r['case']} {r['mover']}: {_fmt(r['conv_scan_mirrors'])} / "
             f"{_fmt(r['conv_scan_lifted'])}"
@@ -174,8 +177,9 @@ def summary(runs: list[dict]) -> dict:
 
 def print_summary(s: dict) -> None:
     print("| case | mover | by count M / L | by time M / L | first seen M / L | converged M / L "
-          "| switches M / L | min purity M / L | false tracks M / L | in view M / L |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| switches M / L | min purity M / L | false tracks M / L | in view M / L "
+          "| reported M / L |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in s["rows"]:
         pm, pl = r["purity_min_mirrors"], r["purity_min_lifted"]
         print(f"| {r['case']} | {r['mover']} | {_fmt(r['conv_mirrors'])} / "
@@ -186,11 +190,12 @@ def print_summary(s: dict) -> None:
               f"{r['switches_lifted']} | {'-' if pm is None else f'{pm:.2f}'} / "
               f"{'-' if pl is None else f'{pl:.2f}'} | {r['false_tracks_mirrors']} / "
               f"{r['false_tracks_lifted']} | {_fmt(r.get('view_scan_mirrors'))} / "
-              f"{_fmt(r.get('view_scan_lifted'))} |")
+              f"{_fmt(r.get('view_scan_lifted'))} | {_fmt(r.get('reported_scan_mirrors'))} / "
+              f"{_fmt(r.get('reported_scan_lifted'))} |")
     c = s["criteria"]
     print(f"\n{c['movers']} movers")
     for k in ("mirrors_later_by_time", "mirrors_later_by_time_out_of_view",
-              "mirrors_later_after_view", "mirrors_later_by_count",
+              "mirrors_later_after_view", "mirrors_later_by_count", "mirrors_reported_later",
               "mirrors_not_converged_where_lifted", "mirrors_fewer_seeds_converged",
               "identity_failures"):
         print(f"{k}: {len(c[k])}")

@@ -123,11 +123,12 @@ def _study_scenes():
     return mod
 
 
-def _study_run(case, config, seed, conv, conv_scan, switches=0, purity=1.0, view=1):
+def _study_run(case, config, seed, conv, conv_scan, switches=0, purity=1.0, view=1,
+               reported=3):
     return {"case": case, "config": config, "seed": seed, "false_tracks": 0,
             "entropy": "renyi", "gospa_m": 0.2,
             "movers": [{"mover": "P", "conv": conv, "conv_scan": conv_scan, "first_scan": 2,
-                        "view_scan": view,
+                        "view_scan": view, "reported_scan": reported,
                         "id_switches": switches, "purity": purity, "final_err_v_m_s": 0.001,
                         "final_err_heading_deg": 0.1}]}
 
@@ -144,7 +145,8 @@ def test_study_scenes_criteria_from_runs():
                             switches=int(seed == 1)),
                  _study_run("track-crossing", "lifted", seed, 3, 9)]
         # in the mirrors' view only after lifted converged (scan 12 > 10)
-        runs += [_study_run("b", "mirrors", seed, 4, 16, view=12 + seed % 2),
+        runs += [_study_run("b", "mirrors", seed, 4, 16, view=12 + seed % 2,
+                            reported=13 + seed),
                  _study_run("b", "lifted", seed, 4, 10)]
     crit = mod.summary(runs)["criteria"]
     assert crit["mirrors_later_by_time"] == ["a P: 21.5 / 10", "b P: 16 / 10"]
@@ -152,6 +154,7 @@ def test_study_scenes_criteria_from_runs():
     # converged 3.5 scans after its view met it, lifted 9 (in view at 1): not later so
     assert crit["mirrors_later_after_view"] == ["a P: 20.5 / 9"]
     assert crit["mirrors_later_by_count"] == ["a P: 5 / 4"]
+    assert crit["mirrors_reported_later"] == ["b P: 14.5 / 3"]
     assert crit["mirrors_not_converged_where_lifted"] == ["track-crossing P: - / 9"]
     assert crit["mirrors_fewer_seeds_converged"] == ["track-crossing P: 1 / 4"]
     assert crit["identity_failures"] == ["track-crossing P mirrors seeds [1]"]
