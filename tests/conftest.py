@@ -197,6 +197,7 @@ SLOW_FIXTURES: dict[str, tuple[str, ...]] = {
     "test_tracking_gaps.py": ("scene_runs",),
     "test_tracking_occluded.py": ("scene_runs",),
     "test_tracking_cut.py": ("scene_runs",),
+    "test_tracking_round.py": ("scene_runs",),
     "test_tracking_furniture.py": ("scene_runs",),
 }
 

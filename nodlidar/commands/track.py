@@ -131,7 +131,9 @@ def run(args: argparse.Namespace) -> int:
         design = solve(load_design(args.design))
         scans = None
     seg = OnlineSegmenter(range_sigma=design.lidar.range_sigma_m)
-    trk = Tracker(TrackerConfig(entropy=args.entropy))
+    # the lidar's range noise, as the evaluation (run_online) gives it: the margins of the
+    # seen-through test and the round model's residuals are in units of it
+    trk = Tracker(TrackerConfig(entropy=args.entropy), range_sigma=design.lidar.range_sigma_m)
 
     def step(scan_points) -> None:
         show(trk.update(seg.update(scan_points)))

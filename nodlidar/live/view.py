@@ -180,7 +180,7 @@ def build_tracking(session: Session, sensor_height_m: float) -> tuple[
         warm_up()  # the tracking's compiled loops, before the first scan reaches them
         live = LiveScans(model, (lift_left, lift_right), sensor_height_m=sensor_height_m)
         return (live, OnlineSegmenter(range_sigma=design.lidar.range_sigma_m),
-                Tracker(TrackerConfig())), None
+                Tracker(TrackerConfig(), range_sigma=design.lidar.range_sigma_m)), None
     except Exception as exc:   # noqa: BLE001 - any API drift in the tracker: view without tracks
         return None, f"{type(exc).__name__}: {exc}"
 

@@ -9,6 +9,11 @@ passes over one large temporary each.
   passes over ~320 k drawn pairs, most of them dropped, in numpy;
 - :func:`seen_by_both`: which of those pairs both scans could see (the cut lines' test of
   :func:`~nodlidar.tracking.motion._seen_by_both`), ~15 passes per line in numpy.
+- :func:`circle_normal_equations`: one Gauss-Newton step's normal equations of the round
+  model (:func:`~nodlidar.tracking.round_motion.fit_moving_circle`), one pass over the
+  window's points instead of ~15 numpy passes and a matrix product per step. This one has
+  no numpy twin to match bit for bit (its sums run in point order, a matrix product's do
+  not): tests/test_round_motion.py checks it against the numpy Jacobian to 1e-9.
 
 Every value is the one the numpy formulas gave: the same float64 operations in the same
 order (numba without fastmath: no reordering, no fused multiply-add), checked bit for bit
@@ -23,7 +28,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["ray_sample_keys", "pairs_within", "seen_by_both", "warm_up"]
+__all__ = ["ray_sample_keys", "pairs_within", "seen_by_both", "circle_normal_equations",
+           "warm_up"]
 
 _jit = numba.njit(cache=True, nogil=True)
 # inlined at numba's IR level (a call to a separate compiled function costs ~13 ns)
@@ -224,6 +230,42 @@ def seen_by_both(px: np.ndarray, py: np.ndarray, dt: np.ndarray, edges: np.ndarr
     return seen
 
 
+@_jit
+def circle_normal_equations(p: np.ndarray, dt: np.ndarray, sig: np.ndarray, k: np.ndarray,
+                            c: np.ndarray, v: np.ndarray, radius: float, huber: float,
+                            A: np.ndarray, g: np.ndarray) -> None:
+    """The moving circle's normal equations at centres ``c`` (K, 2) [m], velocity ``v``
+    (2,) [m/s] and ``radius`` [m], per window: ``A[kk]`` (5, 5) and ``g[kk]`` (5,) over
+    the points of window ``kk`` (``k`` (n,) int) of ``p`` (n, 2) [m] at ``dt`` (n,) [s]
+    from the reference time, each residual ``(|p - c - v dt| - radius) / sig`` weighted by
+    Huber at ``huber``; the parameters per row: that window's centre (2), ``v`` (2),
+    ``radius``. ``A`` and ``g`` are zeroed and filled in place."""
+    A[:] = 0.0
+    g[:] = 0.0
+    j = np.empty(5)
+    for i in range(p.shape[0]):
+        kk = k[i]
+        dx = p[i, 0] - c[kk, 0] - v[0] * dt[i]
+        dy = p[i, 1] - c[kk, 1] - v[1] * dt[i]
+        dist = np.hypot(dx, dy)
+        inv = 1.0 / max(dist, 1e-9)
+        ux, uy = dx * inv, dy * inv
+        s = 1.0 / sig[i]
+        r = (dist - radius) * s
+        ar = abs(r)
+        w = 1.0 if ar <= huber else huber / max(ar, 1e-12)
+        j[0] = -ux * s
+        j[1] = -uy * s
+        j[2] = -ux * dt[i] * s
+        j[3] = -uy * dt[i] * s
+        j[4] = -s
+        for a in range(5):
+            wa = w * j[a]
+            g[kk, a] += wa * r
+            for b in range(5):
+                A[kk, a, b] += wa * j[b]
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) every loop here now, with the argument types
     the tracking passes, not at the first scan: a first compile takes ~1-3 s (~0.2 s to
@@ -233,3 +275,5 @@ def warm_up() -> None:
     one, idx = np.zeros(1), np.zeros(1, np.int64)
     pairs_within(one, one, one, idx, idx, 1.0, False)
     seen_by_both(one, one, one, np.zeros((1, 2, 5)), idx, idx, 0.0, 0.0, 1e-3)
+    circle_normal_equations(np.zeros((1, 2)), one, np.ones(1), idx, np.zeros((1, 2)),
+                            np.zeros(2), 0.1, 2.0, np.zeros((1, 5, 5)), np.zeros((1, 5)))

@@ -169,7 +169,7 @@ def run_config(design: Design, *, mirrors_deployed: bool, n_scans: int = 38, see
         if truth.any():
             traces.append(count_traces(s.scan, truth))
             npts.append(int(truth.sum()))
-    trk = Tracker(tracker)
+    trk = Tracker(tracker, range_sigma=design.lidar.range_sigma_m)  # as run_online
     for s in segs:
         trk.update(s)
     tracks = trk.all_tracks()

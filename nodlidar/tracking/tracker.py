@@ -77,7 +77,15 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from ..errors import require
-from .motion import MotionEstimate, coarse_motion, incidence_weights, refine_motion, smooth_along_scan
+from .motion import (
+    MotionEstimate,
+    coarse_motion,
+    incidence_weights,
+    motion_from_velocity,
+    refine_motion,
+    smooth_along_scan,
+)
+from .round_motion import fit_moving_circle
 from .segment import (
     behind_or_through,
     column_rays,
@@ -658,6 +666,49 @@ class TrackerConfig:
         of their points in cut slices (a cut's bias is not the kernel's, and the
         extrapolation doubled it: with no bound, a person entering the mirrors' view
         converged at scan 27 instead of 15, median of seeds 0-7).
+    round_model : {"off", "cut", "always"}
+        A round object's velocity from its outline
+        (:func:`~nodlidar.tracking.round_motion.fit_moving_circle`): a circle of one radius
+        moving at one velocity, a centre per mirror window, fitted to the window's
+        ground-plane points. Where the fit holds (below), its velocity enters the scan's
+        measurement, fused with the entropy refinement's (``round_fuse``; the refinement's
+        covariance is kept: the filter's noise model stays the one calibrated for the
+        window). ``"cut"`` (default): only for
+        windows with a slice cut by a window's or the view's edge, an occluder or the floor
+        - there the entropy reads the speed across the cut weakly, and a vertical
+        cylinder's centre moves with it whatever part of it is seen; ``"always"``: every
+        window (not measured over the harness); ``"off"``. Measured, mirrors, median of
+        seeds 0-7: the paper's cylinder at 0.05 m/s, heading 0, 15 -> 8 (lifted 15.5); a
+        fast crossing (``x-fast``) and a close pass (``s-close-pass``) converge (they did not);
+        a person entering the view on the diagonal 12 -> 11.
+    round_radius_m : (float, float)
+        The fitted radius must lie in this range [m] (a person, a post; a box's flat face
+        fits a circle metres wide).
+    round_max_rms : float
+        ... and the residuals' RMS, each divided by its beam's range noise (the lidar's
+        ``range_sigma``; 1 cm without it), at most this (a cylinder: about 1; a box's
+        corner: several).
+    round_max_serial : float
+        ... and the correlation of neighbouring points' residuals along a slice
+        (:attr:`~nodlidar.tracking.round_motion.RoundFit.serial`) at most this: a circle
+        that leaves only noise leaves it uncorrelated (measured on the simulator's people
+        and posts: -0.13 to 0.02), one that leaves a shape does not (a 0.5 m box's corner
+        beside a person: 0.18-0.46, at a normalised RMS of 0.9-1.2 that alone passes).
+    round_max_sd_m_s : float
+        ... and the fit's velocity sd (larger axis) at most this [m/s]: the first scans of
+        a cut window determine a circle poorly.
+    round_fuse : bool
+        Where the fit holds, the measurement is the circle's and the entropy's velocity
+        fused at their own covariances (the refinement's per window, as
+        :meth:`Tracker._velocity_noise` calibrates it: Rényi's inverse Hessian over the
+        points in the sum, the voxel grid's spread), not the circle's alone: across a cut
+        the entropy is flat and the circle decides, and where the entropy reads the motion
+        well it keeps its weight. Without a usable entropy covariance, the circle's alone.
+        Measured over the harness (seeds 0-7, 2096 runs; docs/tracking.md "Twenty-fifth
+        session"): the circle alone made far people converge later with mirrors (``q-far``
+        45 -> 47.5, ``u-far-fast`` 39.5 -> 47.5); fused, no mover's median with mirrors is 2
+        scans or more later, and 419 mover-runs converge sooner, 202 later (converged
+        1486 / 1473 -> 1503 / 1482, mirrors / lifted).
     incidence_weights : bool
         Rényi only: weight each point by ``1 / cos(incidence)`` (:func:`incidence_weights`)
         so the entropy counts surface, not beam density (default; docs/tracking.md "Fast
@@ -743,6 +794,12 @@ class TrackerConfig:
     debias_sigma_m: float = 0.0
     debias_min_speed_m_s: float = 0.5
     debias_max_cut_fraction: float = 0.5
+    round_model: str = "cut"
+    round_radius_m: tuple[float, float] = (0.05, 0.5)
+    round_max_rms: float = 1.5
+    round_max_serial: float = 0.15
+    round_max_sd_m_s: float = 0.03
+    round_fuse: bool = True
 
     def __post_init__(self) -> None:
         require(self.confirm_scans >= 2, "confirm_scans", self.confirm_scans, ">= 2")
@@ -801,6 +858,16 @@ class TrackerConfig:
                 self.window_cut_drop_m_s, "> 0 m/s (inf: never left out)")
         require(self.window_cut_reach_m >= 0, "window_cut_reach_m", self.window_cut_reach_m,
                 ">= 0 m (0: the cluster's own ends)")
+        require(self.round_model in ("off", "cut", "always"), "round_model",
+                self.round_model, "off, cut or always")
+        require(len(self.round_radius_m) == 2
+                and 0 < self.round_radius_m[0] < self.round_radius_m[1], "round_radius_m",
+                self.round_radius_m, "(low, high) with 0 < low < high [m]")
+        require(self.round_max_rms > 0, "round_max_rms", self.round_max_rms, "> 0")
+        require(-1 <= self.round_max_serial <= 1, "round_max_serial", self.round_max_serial,
+                "-1..1 (1: off)")
+        require(self.round_max_sd_m_s > 0, "round_max_sd_m_s", self.round_max_sd_m_s,
+                "> 0 m/s")
         require(self.window_cut_mask in ("off", "edges", "all"), "window_cut_mask",
                 self.window_cut_mask, "off, edges or all")
         require(self.max_speed_m_s > 0, "max_speed_m_s", self.max_speed_m_s,
@@ -927,6 +994,7 @@ class _Track:
     mirrors: list = field(default_factory=list)
     truth: list = field(default_factory=list)
     weights: list = field(default_factory=list)
+    sigma: list = field(default_factory=list)  # per scan, (k,): each point's range noise [m]
     cut: list = field(default_factory=list)  # per scan, (k, 2, 2): each cut line's bearing
     # as (sin, cos), or NaN
     edges: list = field(default_factory=list)  # per scan, (k, 2, 6): segment.cut_edges
@@ -1015,6 +1083,38 @@ def _debiased(P: np.ndarray, Tp: np.ndarray, mo: MotionEstimate, cfg: TrackerCon
         return mo
     k = cfg.sigma_m / (cfg.debias_sigma_m - cfg.sigma_m)
     return replace(mo, v_m_s=max(0.0, mo.v_m_s + k * (mo.v_m_s - m2.v_m_s)))
+
+
+#: range noise [m] for the round model's residuals when the tracker has no lidar's
+#: range_sigma (the URG-04LX's figure below 1 m)
+_ROUND_SIGMA_M = 0.01
+
+
+def _round(tr: _Track, w0: int, keep: np.ndarray, mo: MotionEstimate,
+           cfg: TrackerConfig, ce: np.ndarray | None = None) -> MotionEstimate:
+    """``mo`` with the velocity of a moving circle fitted to the track's window (scans from
+    ``w0``, points where ``keep``) where the fit holds (TrackerConfig.round_model), else
+    ``mo`` as it is."""
+    P = np.concatenate(tr.points[w0:])[keep]
+    Tp = np.concatenate(tr.times[w0:])[keep]
+    scans = np.repeat(np.arange(len(tr.points) - w0), [len(p) for p in tr.points[w0:]])[keep]
+    fit = fit_moving_circle(P[:, :2], Tp, float(Tp.max()), mo.velocity,
+                            np.concatenate(tr.sigma[w0:])[keep],
+                            labels=np.concatenate(tr.mirrors[w0:])[keep], scans=scans,
+                            max_radius_m=4 * cfg.round_radius_m[1])
+    if (fit is None or not cfg.round_radius_m[0] <= fit.radius_m <= cfg.round_radius_m[1]
+            or not fit.rms_norm <= cfg.round_max_rms or not fit.serial <= cfg.round_max_serial
+            or not np.sqrt(np.linalg.eigvalsh(fit.cov)[-1]) <= cfg.round_max_sd_m_s):
+        return mo
+    vel = fit.velocity
+    if cfg.round_fuse and ce is not None:
+        # both estimates of one window, each at its own covariance: where the entropy
+        # reads the motion well (a far object's many scans) it keeps its weight, where it
+        # is flat (across a cut) the circle decides
+        wi_e, wi_c = np.linalg.inv(ce), np.linalg.inv(fit.cov)
+        vel = np.linalg.solve(wi_e + wi_c, wi_e @ mo.velocity + wi_c @ fit.velocity)
+    v, h = motion_from_velocity(vel)
+    return replace(mo, v_m_s=v, heading_rad=h)
 
 
 def _refine_window(P: np.ndarray, Tp: np.ndarray, warm: MotionEstimate | None,
@@ -1603,7 +1703,7 @@ class Tracker:
             par.reacquired = len(par.scans)
         else:
             par.start = len(par.scans)
-        for name in ("points", "times", "mirrors", "truth", "weights", "cut", "edges",
+        for name in ("points", "times", "mirrors", "truth", "weights", "sigma", "cut", "edges",
                      "sensor_v", "scans", "centroids", "t_centroids", "centroids_uncut"):
             getattr(par, name).extend(getattr(tr, name))
         par.last_scan, par.n_points = tr.last_scan, par.n_points + tr.n_points
@@ -1903,6 +2003,21 @@ class Tracker:
             # mostly whole slices: a cut's bias is not the kernel's, and the extrapolation
             # doubles it (TrackerConfig.debias_sigma_m)
             tr.motion = _debiased(P, Tp, tr.motion, cfg, kw)
+        if (tr.motion is not None and cfg.round_model != "off"
+                and (cfg.round_model == "always" or np.any(~np.isnan(across)))):
+            ce = None
+            if tr.motion.cov is not None and np.all(np.isfinite(tr.motion.cov)):
+                # the refinement's own covariance per window (_velocity_noise, without the
+                # overlap's factor and the floor): Rényi's inverse Hessian over the points
+                # in the sum, the voxel grid's spread as it is
+                ce = np.asarray(tr.motion.cov, float)
+                if cfg.entropy == "renyi":
+                    n = (tr.motion.n_points if cfg.renyi_subsample == "pairs"
+                         else min(tr.motion.n_points, cfg.max_points))
+                    ce = ce / max(n, 1)
+                if not np.linalg.eigvalsh(ce)[0] > 0:
+                    ce = None
+            tr.motion = _round(tr, w0, keep, tr.motion, cfg, ce)
 
     def _segmented(self, scan: Segmented | ScanPoints) -> Segmented:
         if hasattr(scan, "objects"):  # already segmented (duck-typed, as before)
@@ -2305,6 +2420,9 @@ class Tracker:
                           else None)
         tr.truth.append(None if scan.truth_id is None else scan.truth_id[idx])
         cfg = self.config
+        tr.sigma.append(None if cfg.round_model == "off" else (
+            np.broadcast_to(np.asarray(self._range_sigma(scan.range_m[idx]), float), idx.shape)
+            if self._range_sigma is not None else np.full(len(idx), _ROUND_SIGMA_M)))
         edges = cut_edges(scan, idx, cfg.window_cut_reach_m, cfg.window_cut_occluders,
                           floor_z_m=self._floor_z_m if cfg.window_cut_floor else -np.inf)
         cut = np.isfinite(edges[:, 0, 0])
@@ -2338,7 +2456,8 @@ class Tracker:
         if not self.config.keep_points and len(tr.points) > w:
             # outside the refinement's window: emptied, not removed (lists stay aligned
             # with tr.scans and tr.centroids)
-            for lst in (tr.points, tr.times, tr.mirrors, tr.truth, tr.weights, tr.cut, tr.edges):
+            for lst in (tr.points, tr.times, tr.mirrors, tr.truth, tr.weights, tr.sigma, tr.cut,
+                        tr.edges):
                 old = lst[-w - 1]
                 lst[-w - 1] = None if old is None else old[:0]
 
