@@ -692,7 +692,7 @@ class TrackerConfig:
         ... and the correlation of neighbouring points' residuals along a slice
         (:attr:`~nodlidar.tracking.round_motion.RoundFit.serial`) at most this: a circle
         that leaves only noise leaves it uncorrelated (measured on the simulator's people
-        and posts: -0.13 to 0.02), one that leaves a shape does not (a 0.5 m box's corner
+        and posts: -0.13 to 0.04), one that leaves a shape does not (a 0.5 m box's corner
         beside a person: 0.18-0.46, at a normalised RMS of 0.9-1.2 that alone passes).
     round_max_sd_m_s : float
         ... and the fit's velocity sd (larger axis) at most this [m/s]: the first scans of
