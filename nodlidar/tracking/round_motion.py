@@ -69,7 +69,7 @@ class RoundFit:
 def _kasa(q: np.ndarray) -> tuple[np.ndarray, float] | None:
     """Algebraic circle through ``q`` (n, 2): centre (2,) and radius, None if degenerate."""
     A = np.column_stack([2.0 * q, np.ones(len(q))])
-    try:  # the normal equations: 3 x 3, and the points are centred near the circle
+    try:  # by its 3 x 3 normal equations: only Gauss-Newton's start, and cheap
         sol = np.linalg.solve(A.T @ A, A.T @ (q ** 2).sum(axis=1))
     except np.linalg.LinAlgError:
         return None
@@ -147,11 +147,10 @@ def fit_moving_circle(points_xy: ArrayLike, t_s: ArrayLike, t_ref_s: float,
     from ._kernel import circle_normal_equations  # numba: loaded when first used
 
     n_par = 2 * K + 3
-    A = np.eye(n_par)
     Ak, gk = np.zeros((K, 5, 5)), np.zeros((K, 5))
     p, dt, sig = np.ascontiguousarray(p), np.ascontiguousarray(dt), np.ascontiguousarray(sig)
     k = np.ascontiguousarray(k, dtype=np.int64)
-    for _ in range(iterations):
+    for _ in range(max(iterations, 1)):  # at least one: the covariance is its system's
         # per window, over (its centre, v, R): a centre touches its own points only
         circle_normal_equations(p, dt, sig, k, c, v, float(R), huber, Ak, gk)
         A = np.zeros((n_par, n_par))
@@ -181,8 +180,8 @@ def fit_moving_circle(points_xy: ArrayLike, t_s: ArrayLike, t_ref_s: float,
     r = (np.hypot(d[:, 0], d[:, 1]) - R) / sig
     rms = float(np.sqrt(np.mean(r ** 2)))
     if scan_of is None:
-        step = np.diff(dt)
-        same = (step >= 0) & (step < 0.01)
+        gap = np.diff(dt)
+        same = (gap >= 0) & (gap < 0.01)
     else:
         same = np.diff(scan_of) == 0
     same &= np.diff(lab) == 0
