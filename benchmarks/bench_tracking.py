@@ -96,7 +96,9 @@ def main() -> dict:
     figures = time_merge(scans[10])
     for ent in ("renyi", "voxel"):
         seg = OnlineSegmenter(SegmentConfig(), design.lidar.range_sigma_m)  # windowed map
-        trk = Tracker(TrackerConfig(entropy=ent))
+        # the lidar's range noise, as `track`, the live view and run_online pass it (each
+        # point's sigma for the round model's residuals)
+        trk = Tracker(TrackerConfig(entropy=ent), range_sigma=design.lidar.range_sigma_m)
         dts, cpu = [], []
         for s in scans:
             t0, c0 = time.perf_counter(), time.process_time()
@@ -121,7 +123,7 @@ def main() -> dict:
     people = simulate_scans(design, 90, mirrors_deployed=True, seed=0,
                             scene=ROOT / "design" / "scenes" / "track-three-people.toml")
     seg = OnlineSegmenter(SegmentConfig(), design.lidar.range_sigma_m)
-    trk = Tracker(TrackerConfig())
+    trk = Tracker(TrackerConfig(), range_sigma=design.lidar.range_sigma_m)
     cpu = []
     for s in people:
         c0 = time.process_time()

@@ -247,7 +247,7 @@ def circle_normal_equations(p: np.ndarray, dt: np.ndarray, sig: np.ndarray, k: n
         kk = k[i]
         dx = p[i, 0] - c[kk, 0] - v[0] * dt[i]
         dy = p[i, 1] - c[kk, 1] - v[1] * dt[i]
-        dist = np.hypot(dx, dy)
+        dist = np.sqrt(dx * dx + dy * dy)  # not hypot: a libm call, and no overflow here
         inv = 1.0 / max(dist, 1e-9)
         ux, uy = dx * inv, dy * inv
         s = 1.0 / sig[i]
@@ -262,8 +262,64 @@ def circle_normal_equations(p: np.ndarray, dt: np.ndarray, sig: np.ndarray, k: n
         for a in range(5):
             wa = w * j[a]
             g[kk, a] += wa * r
-            for b in range(5):
+            for b in range(a, 5):  # the upper triangle; the lower is its mirror
                 A[kk, a, b] += wa * j[b]
+    for kk in range(A.shape[0]):
+        for a in range(1, 5):
+            for b in range(a):
+                A[kk, a, b] = A[kk, b, a]
+
+
+@_jit
+def circle_start_sums(p: np.ndarray, dt: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The algebraic (Kasa) circle's normal equations for the points ``p`` (n, 2) [m] moved
+    back to the reference time at ``v`` (2,) [m/s] (``dt`` (n,) [s]), about the first
+    moved point (conditioning): (9,) = n, sum x, sum y, sum xx, sum xy, sum yy, sum xz,
+    sum yz, sum z with ``z = x^2 + y^2``, in one pass."""
+    out = np.zeros(9)
+    if p.shape[0] == 0:
+        return out
+    x0 = p[0, 0] - v[0] * dt[0]
+    y0 = p[0, 1] - v[1] * dt[0]
+    for i in range(p.shape[0]):
+        x = p[i, 0] - v[0] * dt[i] - x0
+        y = p[i, 1] - v[1] * dt[i] - y0
+        z = x * x + y * y
+        out[0] += 1.0
+        out[1] += x
+        out[2] += y
+        out[3] += x * x
+        out[4] += x * y
+        out[5] += y * y
+        out[6] += x * z
+        out[7] += y * z
+        out[8] += z
+    return out
+
+
+@_jit
+def circle_residual_stats(p: np.ndarray, dt: np.ndarray, sig: np.ndarray, k: np.ndarray,
+                          c: np.ndarray, v: np.ndarray, radius: float,
+                          scan: np.ndarray) -> tuple[float, float, int]:
+    """The moving circle's normalised residuals ``r_i = (|p_i - c_k(i) - v dt_i| - radius)
+    / sig_i`` (arguments as :func:`circle_normal_equations`; ``scan`` (n,) int each point's
+    scan): ``sum r^2``, and over consecutive points of one scan and window ``sum r_i
+    r_{i+1}`` and their count, in one pass."""
+    rr = 0.0
+    rs = 0.0
+    m = 0
+    prev = 0.0
+    for i in range(p.shape[0]):
+        kk = k[i]
+        dx = p[i, 0] - c[kk, 0] - v[0] * dt[i]
+        dy = p[i, 1] - c[kk, 1] - v[1] * dt[i]
+        r = (np.sqrt(dx * dx + dy * dy) - radius) / sig[i]
+        rr += r * r
+        if i > 0 and scan[i] == scan[i - 1] and kk == k[i - 1]:
+            rs += prev * r
+            m += 1
+        prev = r
+    return rr, rs, m
 
 
 def warm_up() -> None:
@@ -277,3 +333,6 @@ def warm_up() -> None:
     seen_by_both(one, one, one, np.zeros((1, 2, 5)), idx, idx, 0.0, 0.0, 1e-3)
     circle_normal_equations(np.zeros((1, 2)), one, np.ones(1), idx, np.zeros((1, 2)),
                             np.zeros(2), 0.1, 2.0, np.zeros((1, 5, 5)), np.zeros((1, 5)))
+    circle_start_sums(np.zeros((1, 2)), one, np.zeros(2))
+    circle_residual_stats(np.zeros((1, 2)), one, np.ones(1), idx, np.zeros((1, 2)),
+                          np.zeros(2), 0.1, idx)

@@ -29,7 +29,7 @@ well the window determines the velocity (``cov``); the caller decides whether to
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -56,6 +56,12 @@ class RoundFit:
         scan's slice, same window): about 0 where the circle leaves only the range noise,
         towards 1 where it leaves a shape (a box's corner and faces).
     n_points : int
+    labels : (K,) int
+        The windows' labels, sorted.
+    centres : (K, 2) float
+        Each window's centre at ``t_ref_s`` [m].
+    t_ref_s : float
+        The reference time of ``centres`` [s].
     """
 
     velocity: np.ndarray
@@ -64,27 +70,36 @@ class RoundFit:
     rms_norm: float
     serial: float
     n_points: int
+    labels: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    centres: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    t_ref_s: float = 0.0
 
 
-def _kasa(q: np.ndarray) -> tuple[np.ndarray, float] | None:
-    """Algebraic circle through ``q`` (n, 2): centre (2,) and radius, None if degenerate."""
-    A = np.column_stack([2.0 * q, np.ones(len(q))])
-    try:  # by its 3 x 3 normal equations: only Gauss-Newton's start, and cheap
-        sol = np.linalg.solve(A.T @ A, A.T @ (q ** 2).sum(axis=1))
+def _kasa(p: np.ndarray, dt: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """Algebraic (Kasa) circle through ``p`` (n, 2) [m] moved back to the reference time at
+    ``v`` (2,) [m/s] (``dt`` (n,) [s]): centre (2,) and radius, None if degenerate. By its
+    3 x 3 normal equations, from one compiled pass: only Gauss-Newton's start, and cheap."""
+    from ._kernel import circle_start_sums  # numba: loaded when first used
+
+    n, sx, sy, sxx, sxy, syy, sxz, syz, sz = circle_start_sums(p, dt, v)
+    M = np.array([[4 * sxx, 4 * sxy, 2 * sx], [4 * sxy, 4 * syy, 2 * sy], [2 * sx, 2 * sy, n]])
+    try:
+        sol = np.linalg.solve(M, np.array([2 * sxz, 2 * syz, sz]))
     except np.linalg.LinAlgError:
         return None
     c = sol[:2]
     r2 = sol[2] + c @ c
     if not (np.all(np.isfinite(sol)) and r2 > 0):
         return None
-    return c, float(np.sqrt(r2))
+    return c + (p[0] - v * dt[0]), float(np.sqrt(r2))  # the sums were about the first point
 
 
 def fit_moving_circle(points_xy: ArrayLike, t_s: ArrayLike, t_ref_s: float,
                       velocity0: ArrayLike, sigma_m: ArrayLike,
                       labels: ArrayLike | None = None, scans: ArrayLike | None = None,
                       max_radius_m: float = 2.0, max_points: int = 5000,
-                      iterations: int = 12, huber: float = 2.0) -> RoundFit | None:
+                      iterations: int = 12, huber: float = 2.0,
+                      start: RoundFit | None = None) -> RoundFit | None:
     """Fit a circle of constant radius moving at constant velocity to a window's points.
 
     Parameters
@@ -116,6 +131,11 @@ def fit_moving_circle(points_xy: ArrayLike, t_s: ArrayLike, t_ref_s: float,
         Gauss-Newton steps (stops earlier once the step is below 0.1 mm, 0.1 mm/s).
     huber : float
         Huber threshold on the normalised residual (robust to a stray point).
+    start : RoundFit, optional
+        A previous fit of the same object (the last scan's window) to start from: its
+        radius, velocity and centres, moved to ``t_ref_s`` at its velocity. Used where it
+        has a centre for every label here; else the algebraic start. Gauss-Newton then
+        needs fewer steps to the same minimum.
 
     Returns
     -------
@@ -133,23 +153,39 @@ def fit_moving_circle(points_xy: ArrayLike, t_s: ArrayLike, t_ref_s: float,
         take = np.unique(np.linspace(0, len(p) - 1, max_points).round().astype(int))
         p, dt, sig, lab = p[take], dt[take], sig[take], lab[take]
         scan_of = None if scan_of is None else scan_of[take]
-    keys, k = np.unique(lab, return_inverse=True)
+    if len(lab):  # np.unique's labels and inverse, by counting (labels are a few small ints)
+        lo = int(lab.min())
+        present = np.bincount(lab - lo) > 0
+        keys = np.flatnonzero(present) + lo
+        k = (np.cumsum(present) - 1)[lab - lo]
+    else:
+        keys, k = np.zeros(0, int), np.zeros(0, int)
     K = len(keys)
     if len(p) < 3 * K + 3 + 2:
         return None
-    start = _kasa(p - dt[:, None] * v)
-    if start is None or start[1] > max_radius_m:
-        return None
-    # every window starts at the common circle: their shifts are millimetres to centimetres,
-    # well inside Gauss-Newton's reach (a circle per window cost a least-squares solve each)
-    c = np.repeat(start[0][None], K, axis=0)
-    R = start[1]
-    from ._kernel import circle_normal_equations  # numba: loaded when first used
+    p, dt, sig = np.ascontiguousarray(p), np.ascontiguousarray(dt), np.ascontiguousarray(sig)
+    k = np.ascontiguousarray(k, dtype=np.int64)
+    # the start's centre for each label here (searchsorted: its labels are sorted)
+    at = np.zeros(0, int) if start is None else np.minimum(
+        np.searchsorted(start.labels, keys), max(len(start.labels) - 1, 0))
+    if start is not None and len(start.labels) and np.array_equal(start.labels[at], keys):
+        v = np.asarray(start.velocity, float).copy()
+        c = start.centres[at] + (float(t_ref_s) - start.t_ref_s) * v
+        R = start.radius_m
+    else:
+        kasa = _kasa(p, dt, v)
+        if kasa is None or kasa[1] > max_radius_m:
+            return None
+        # every window starts at the common circle: their shifts are millimetres to
+        # centimetres, well inside Gauss-Newton's reach (a circle per window cost a
+        # least-squares solve each)
+        c = np.repeat(kasa[0][None], K, axis=0)
+        R = kasa[1]
+    # numba: loaded when first used
+    from ._kernel import circle_normal_equations, circle_residual_stats
 
     n_par = 2 * K + 3
     Ak, gk = np.zeros((K, 5, 5)), np.zeros((K, 5))
-    p, dt, sig = np.ascontiguousarray(p), np.ascontiguousarray(dt), np.ascontiguousarray(sig)
-    k = np.ascontiguousarray(k, dtype=np.int64)
     for _ in range(max(iterations, 1)):  # at least one: the covariance is its system's
         # per window, over (its centre, v, R): a centre touches its own points only
         circle_normal_equations(p, dt, sig, k, c, v, float(R), huber, Ak, gk)
@@ -176,20 +212,15 @@ def fit_moving_circle(points_xy: ArrayLike, t_s: ArrayLike, t_ref_s: float,
             return None  # diverged: no circle explains these points
         if np.max(np.abs(step)) < 1e-4:
             break
-    d = p - c[k] - dt[:, None] * v
-    r = (np.hypot(d[:, 0], d[:, 1]) - R) / sig
-    rms = float(np.sqrt(np.mean(r ** 2)))
-    if scan_of is None:
+    if scan_of is None:  # a new scan wherever the time steps back or by 10 ms or more
         gap = np.diff(dt)
-        same = (gap >= 0) & (gap < 0.01)
-    else:
-        same = np.diff(scan_of) == 0
-    same &= np.diff(lab) == 0
-    den = float(r @ r)
-    serial = float(np.sum(r[:-1][same] * r[1:][same]) / den) * len(r) / max(
-        int(np.count_nonzero(same)), 1) if den > 0 else 0.0
+        scan_of = np.concatenate([[0], np.cumsum(~((gap >= 0) & (gap < 0.01)))])
+    rr, rs, m = circle_residual_stats(p, dt, sig, k, c, v, float(R),
+                                      np.ascontiguousarray(scan_of, dtype=np.int64))
+    rms = float(np.sqrt(rr / len(p)))
+    serial = rs / rr * len(p) / max(m, 1) if rr > 0 else 0.0
     dof = max(len(p) - n_par, 1)
-    scale = float(r @ r) / dof
+    scale = rr / dof
     if not np.isfinite(scale):
         return None
     try:
@@ -201,4 +232,4 @@ def fit_moving_circle(points_xy: ArrayLike, t_s: ArrayLike, t_ref_s: float,
     if not (np.all(np.isfinite(cov)) and np.isfinite(R) and R > 0):
         return None
     return RoundFit(velocity=v, radius_m=float(R), cov=cov, rms_norm=rms, serial=serial,
-                    n_points=len(p))
+                    n_points=len(p), labels=keys, centres=c, t_ref_s=float(t_ref_s))
