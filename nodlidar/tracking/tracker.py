@@ -387,6 +387,20 @@ class TrackerConfig:
         ``"adaptive"``: the scans in the track's window from which all pairs are taken (6:
         the diagnosis measured the bias between windows at 2-4 scans, -15 to -1 deg, and
         the terms between windows helping at 6 scans, -0.13 deg with them, -0.46 without).
+    box_pairs_speed_m_s : float
+        A track the round model found no circle (its last cut window's fit failed the
+        radius, RMS or serial gate: a box, a cart) moving at this speed [m/s] or more takes
+        only pairs within a mirror window, at every window length: each window sees its
+        own faces of a box, and between windows the kernel aligns the faces' densities,
+        not the surfaces (a 0.8 m box at 0.4 m/s read 2 % slow for 20 scans with all
+        pairs). A slow box keeps the terms between windows, which tie the views together
+        (a 0.6 m box at 0.05 m/s did not converge without them). Default 0.2 (chosen
+        between those two before it was measured); 0: off. Measured over the harness
+        (seeds 0-7, 2096 runs; lifted unchanged, it has one window): with mirrors 54
+        mover-runs sooner, 42 later, converged 1503 -> 1508; ``track-box-fast`` 52.5 ->
+        38 (lifted 50.5), ``x-box08`` 49 -> 39, ``r-cart-corner`` converges (67.5);
+        ``u-far-fast`` 40 -> 44 (one seed of eight, 34 -> 43); identities, switches and
+        false tracks unchanged (docs/tracking.md, "Twenty-sixth session").
     reacquire_speed_m_s : float
         A track with no velocity yet (seen in one scan only) may take a cluster up to
         ``max(gate_m, reacquire_speed_m_s * dt)`` from where it was seen, ``dt`` the time
@@ -782,6 +796,7 @@ class TrackerConfig:
     renyi_subsample: str = "pairs"
     renyi_pairs: str = "adaptive"
     renyi_all_pairs_scans: int = 6
+    box_pairs_speed_m_s: float = 0.2
     reacquire_speed_m_s: float = 0.0
     reacquire_births_m_s: float = 1.5
     reacquire_forget_scans: int = 6
@@ -830,6 +845,8 @@ class TrackerConfig:
                 self.renyi_pairs, "window, all or adaptive")
         require(self.renyi_all_pairs_scans >= 2, "renyi_all_pairs_scans",
                 self.renyi_all_pairs_scans, ">= 2 scans")
+        require(self.box_pairs_speed_m_s >= 0, "box_pairs_speed_m_s",
+                self.box_pairs_speed_m_s, ">= 0 m/s (0: off)")
         require(self.velocity_fusion in FUSIONS, "velocity_fusion",
                 self.velocity_fusion, ", ".join(FUSIONS))
         require(self.gate_m > 0, "gate_m", self.gate_m, "> 0 m")
@@ -1007,6 +1024,9 @@ class _Track:
     # the last round fit that held, and the number of scans the track had then (the next
     # scan's fit starts from it: TrackerConfig.round_warm)
     round_last: tuple | None = None
+    # whether the last round fit found a circle (radius, RMS and serial gates): True,
+    # False, or None before any fit
+    round_shape: bool | None = None
     cut: list = field(default_factory=list)  # per scan, (k, 2, 2): each cut line's bearing
     # as (sin, cos), or NaN
     edges: list = field(default_factory=list)  # per scan, (k, 2, 6): segment.cut_edges
@@ -1118,9 +1138,12 @@ def _round(tr: _Track, w0: int, keep: np.ndarray, P: np.ndarray, Tp: np.ndarray,
                             start=last[1] if cfg.round_warm and last is not None
                             and last[0] == len(tr.scans) - 1 else None)
     tr.round_last = None
-    if (fit is None or not cfg.round_radius_m[0] <= fit.radius_m <= cfg.round_radius_m[1]
-            or not fit.rms_norm <= cfg.round_max_rms or not fit.serial <= cfg.round_max_serial
-            or not np.sqrt(np.linalg.eigvalsh(fit.cov)[-1]) <= cfg.round_max_sd_m_s):
+    shape = fit is not None and bool(
+        cfg.round_radius_m[0] <= fit.radius_m <= cfg.round_radius_m[1]
+        and fit.rms_norm <= cfg.round_max_rms and fit.serial <= cfg.round_max_serial)
+    if fit is not None or len(P) >= 200:  # a few points say nothing of the shape
+        tr.round_shape = shape
+    if not shape or fit is None or not np.sqrt(np.linalg.eigvalsh(fit.cov)[-1]) <= cfg.round_max_sd_m_s:
         return mo
     tr.round_last = (len(tr.scans), fit)
     vel = fit.velocity
@@ -1992,7 +2015,11 @@ class Tracker:
         # (TrackerConfig.renyi_pairs; "adaptive": only while the window is short)
         within = cfg.renyi_pairs == "window" or (
             cfg.renyi_pairs == "adaptive"
-            and min(n_seg, cfg.window_scans) < cfg.renyi_all_pairs_scans)
+            and min(n_seg, cfg.window_scans) < cfg.renyi_all_pairs_scans) or (
+            # no circle, and fast: the terms between windows align a box's faces
+            # (TrackerConfig.box_pairs_speed_m_s)
+            cfg.box_pairs_speed_m_s > 0 and tr.round_shape is False and tr.motion is not None
+            and float(np.hypot(tr.x[2], tr.x[3])) >= cfg.box_pairs_speed_m_s)
         wts = None
         if cfg.entropy == "renyi" and (cfg.incidence_weights or np.any(cut_w < 1)):
             wts = (np.concatenate(tr.weights[w0:])[keep] if cfg.incidence_weights
