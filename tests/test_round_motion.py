@@ -6,6 +6,8 @@ points are a flat face or a corner."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from cylinder_fan import cylinder_scans
@@ -190,6 +192,12 @@ def test_a_warm_start_reaches_the_cold_starts_minimum_in_fewer_steps(monkeypatch
     other = fit_moving_circle(P, T, T.max(), 0.8 * V, 0.01, labels=lab + 5, start=before)
     assert other is not None
     assert_allclose(other.velocity, cold.velocity, atol=1e-5)
+    # a start the fit fails from (here: no finite centre) loses nothing: the fit is made
+    # again from the algebraic start, exactly the cold fit
+    broken = dataclasses.replace(before, centres=np.full_like(before.centres, np.nan))
+    again = fit_moving_circle(P, T, T.max(), 0.8 * V, 0.01, labels=lab, start=broken)
+    assert again is not None
+    assert_allclose(again.velocity, cold.velocity, rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("field, value, allowed", [

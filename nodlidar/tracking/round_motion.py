@@ -135,7 +135,9 @@ def fit_moving_circle(points_xy: ArrayLike, t_s: ArrayLike, t_ref_s: float,
         A previous fit of the same object (the last scan's window) to start from: its
         radius, velocity and centres, moved to ``t_ref_s`` at its velocity. Used where it
         has a centre for every label here; else the algebraic start. Gauss-Newton then
-        needs fewer steps to the same minimum.
+        needs fewer steps to the same minimum. Where the fit from it fails (diverges, a
+        singular system), the fit is made again from the algebraic start: a start only
+        saves steps, it never loses a fit.
 
     Returns
     -------
@@ -143,6 +145,21 @@ def fit_moving_circle(points_xy: ArrayLike, t_s: ArrayLike, t_ref_s: float,
         None where the points do not determine a circle (too few, a degenerate start, or
         a singular system).
     """
+    fit = _fit(points_xy, t_s, t_ref_s, velocity0, sigma_m, labels, scans, max_radius_m,
+               max_points, iterations, huber, start)
+    if fit is None and start is not None:
+        # rare: on five scenes with mirrors 12 of 573 warm fits failed, and 1 of those
+        # fitted from the algebraic start
+        fit = _fit(points_xy, t_s, t_ref_s, velocity0, sigma_m, labels, scans, max_radius_m,
+                   max_points, iterations, huber, None)
+    return fit
+
+
+def _fit(points_xy: ArrayLike, t_s: ArrayLike, t_ref_s: float, velocity0: ArrayLike,
+         sigma_m: ArrayLike, labels: ArrayLike | None, scans: ArrayLike | None,
+         max_radius_m: float, max_points: int, iterations: int, huber: float,
+         start: RoundFit | None) -> RoundFit | None:
+    """:func:`fit_moving_circle` from ``start`` (None: the algebraic start) only."""
     p = np.asarray(points_xy, float).reshape(-1, 2)
     dt = np.asarray(t_s, float).reshape(-1) - float(t_ref_s)
     sig = np.broadcast_to(np.asarray(sigma_m, float), dt.shape)
