@@ -29,7 +29,7 @@ import numba
 import numpy as np
 
 __all__ = ["ray_sample_keys", "pairs_within", "seen_by_both", "circle_normal_equations",
-           "warm_up"]
+           "circle_start_sums", "circle_residual_stats", "warm_up"]
 
 _jit = numba.njit(cache=True, nogil=True)
 # inlined at numba's IR level (a call to a separate compiled function costs ~13 ns)
