@@ -388,12 +388,13 @@ class TrackerConfig:
         the diagnosis measured the bias between windows at 2-4 scans, -15 to -1 deg, and
         the terms between windows helping at 6 scans, -0.13 deg with them, -0.46 without).
     box_pairs_speed_m_s : float
-        A track the round model found no circle (its last cut window's fit failed the
-        radius, RMS or serial gate: a box, a cart) moving at this speed [m/s] or more takes
-        only pairs within a mirror window, at every window length: each window sees its
-        own faces of a box, and between windows the kernel aligns the faces' densities,
-        not the surfaces (a 0.8 m box at 0.4 m/s read 2 % slow for 20 scans with all
-        pairs). A slow box keeps the terms between windows, which tie the views together
+        A track the round model found no circle in (its last cut window's fit failed the
+        radius, RMS or serial gate, or a window of 200 points or more gave no circle at
+        all: a box, a cart; never with ``round_model="off"``) moving at this speed [m/s] or
+        more takes only pairs within a mirror window, at every window length: each window
+        sees its own faces of a box, and between windows the kernel aligns the faces'
+        densities, not the surfaces (a 0.8 m box at 0.4 m/s read 2 % slow for 20 scans
+        with all pairs). A slow box keeps the terms between windows, which tie the views together
         (a 0.6 m box at 0.05 m/s did not converge without them). Default 0.2 (chosen
         between those two before it was measured); 0: off. Measured over the harness
         (seeds 0-7, 2096 runs; lifted unchanged, it has one window): with mirrors 54
@@ -1025,7 +1026,7 @@ class _Track:
     # scan's fit starts from it: TrackerConfig.round_warm)
     round_last: tuple | None = None
     # whether the last round fit found a circle (radius, RMS and serial gates): True,
-    # False, or None before any fit
+    # False (also: no circle at all from 200 points or more), or None before any fit
     round_shape: bool | None = None
     cut: list = field(default_factory=list)  # per scan, (k, 2, 2): each cut line's bearing
     # as (sin, cos), or NaN
