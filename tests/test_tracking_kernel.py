@@ -99,6 +99,20 @@ def test_pairs_within_are_the_numpy_pairs(use_z):
     one = pairs_within(np.array([0.0, 0.3]), np.array([0.0, 0.4]), np.zeros(2),
                        np.array([0]), np.array([1]), 0.3 * 0.3 + 0.4 * 0.4, False)
     assert len(one[0]) == 1
+    # int32 indices (RenyiCost's draw over all points) give the same pairs
+    got32 = pairs_within(qx, qy, qz, i.astype(np.int32), j.astype(np.int32), r * r, use_z)
+    for g, w in zip(got32, want):
+        assert g.dtype == w.dtype and np.array_equal(g, w)
+
+
+@pytest.mark.parametrize("n", [2, 3, 801, 1024, 1025, 3167, 65537])
+def test_int32_draws_are_the_int64_draws(n):
+    # RenyiCost draws its pair indices as int32: numpy draws 32 bits for a range below
+    # 2^32 whatever the dtype, so the numbers (and the cost) are the int64 draw's
+    m = 800 * 799 // 2
+    a, b = np.random.default_rng(n), np.random.default_rng(n)
+    for hi in (n, n - 1):
+        assert np.array_equal(a.integers(0, hi, m), b.integers(0, hi, m, dtype=np.int32))
 
 
 def test_renyi_cost_of_drawn_pairs_is_unchanged():

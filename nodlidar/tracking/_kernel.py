@@ -172,6 +172,8 @@ def pairs_within(qx: np.ndarray, qy: np.ndarray, qz: np.ndarray, i: np.ndarray,
     order, with their offsets ``q_i - q_j`` per axis (z only with ``use_z``; else an empty
     array): ``d2 = dx dx + dy dy (+ dz dz) <= r2`` as numpy evaluates it.
 
+    ``i``, ``j``: int32 or int64 (the draw over all points, or within labels).
+
     Returns (i, j, dx, dy, dz): (p,) int64 twice, (p,) float64 three times.
     """
     n = len(i)
@@ -210,15 +212,25 @@ def seen_by_both(px: np.ndarray, py: np.ndarray, dt: np.ndarray, edges: np.ndarr
     x, y, seen side; NaN side: no line), the point moved at ``(cx, cy)`` to the other's
     time lies on the seen side within ``tol_m`` [m]."""
     m = len(i)
+    n_lines = edges.shape[1]
+    # which points have a line at all (most have none: only slices a window's edge cut);
+    # the others are skipped, the same answer as testing their NaN lines
+    lined = np.zeros(edges.shape[0], np.bool_)
+    for o in range(edges.shape[0]):
+        for k in range(n_lines):
+            if not np.isnan(edges[o, k, 4]):
+                lined[o] = True
     seen = np.ones(m, np.bool_)
     for p in range(m):
         ok = True
-        for k in range(edges.shape[1]):
-            for w in range(2):
-                if w == 0:
-                    pm, po, d = i[p], j[p], dt[p]
-                else:
-                    pm, po, d = j[p], i[p], -1.0 * dt[p]
+        for w in range(2):
+            if w == 0:
+                pm, po, d = i[p], j[p], dt[p]
+            else:
+                pm, po, d = j[p], i[p], -1.0 * dt[p]
+            if not lined[po]:
+                continue
+            for k in range(n_lines):
                 qx = px[pm] + cx * d
                 qy = py[pm] + cy * d
                 cross = edges[po, k, 2] * (qy - edges[po, k, 1]) \
@@ -329,7 +341,9 @@ def warm_up() -> None:
     z = np.zeros((1, 3))
     ray_sample_keys(z, z, np.ones(1, np.int64), 0.05, np.zeros(3), 0.1, 1 << 20)
     one, idx = np.zeros(1), np.zeros(1, np.int64)
-    pairs_within(one, one, one, idx, idx, 1.0, False)
+    pairs_within(one, one, one, idx, idx, 1.0, False)  # pairs drawn within labels
+    idx32 = np.zeros(1, np.int32)
+    pairs_within(one, one, one, idx32, idx32, 1.0, False)  # pairs drawn over all points
     seen_by_both(one, one, one, np.zeros((1, 2, 5)), idx, idx, 0.0, 0.0, 1e-3)
     circle_normal_equations(np.zeros((1, 2)), one, np.ones(1), idx, np.zeros((1, 2)),
                             np.zeros(2), 0.1, 2.0, np.zeros((1, 5, 5)), np.zeros((1, 5)))

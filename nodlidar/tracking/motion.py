@@ -357,9 +357,8 @@ class RenyiCost:
             drawn pairs, most of which are dropped (the same values)."""
             from ._kernel import pairs_within  # numba: loaded when first used
 
-            i, j, dx, dy, dz = pairs_within(qx, qy, qz, np.ascontiguousarray(i, np.int64),
-                                            np.ascontiguousarray(j, np.int64), r * r,
-                                            not plane)
+            i, j, dx, dy, dz = pairs_within(qx, qy, qz, np.ascontiguousarray(i),
+                                            np.ascontiguousarray(j), r * r, not plane)
             return i, j, dx, dy, (None if plane else dz)
 
         #: weight of one pair in the sum (1: every pair within the cutoff is in the list)
@@ -368,8 +367,10 @@ class RenyiCost:
             n = self.n
             m = max_points * (max_points - 1) // 2
             rng = np.random.default_rng(n)
-            i = rng.integers(0, n, m)
-            j = rng.integers(0, n - 1, m)
+            # int32: the same numbers as int64 draws (numpy draws 32 bits for a range
+            # below 2^32 either way), half the memory to write and read
+            i = rng.integers(0, n, m, dtype=np.int32)
+            j = rng.integers(0, n - 1, m, dtype=np.int32)
             j += j >= i  # uniform over the ordered pairs i != j: each stands for one pair
             i, j, dx, dy, dz = drawn_within(i, j)
             self.w = n * (n - 1) / (2.0 * m)

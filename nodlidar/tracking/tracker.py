@@ -1998,13 +1998,13 @@ class Tracker:
         du = v - np.repeat(np.array(tr.sensor_v[w0:]).reshape(-1, 2), sizes, axis=0)
         across_lines = np.abs(du[:, :1] * sc[:, :, 0] - du[:, 1:] * sc[:, :, 1])
         across = np.fmax(across_lines[:, 0], across_lines[:, 1])  # NaN: uncut
-        out = np.split(across >= cfg.window_cut_drop_m_s, np.cumsum(sizes)[:-1])
-        keep = ~np.concatenate(out)
+        keep = ~(across >= cfg.window_cut_drop_m_s)
         # left out only when what is left carries the estimate: most of the window's
         # points, a cluster's worth in two scans. An object entering the view is cut in
         # every slice; its few uncut points per scan gave a velocity of noise (45 deg off)
+        kept = np.concatenate([[0], np.cumsum(keep)])[np.cumsum([0] + sizes)]
         if (2 * np.count_nonzero(keep) < len(keep)
-                or sum(int(np.count_nonzero(~o)) >= self._min_cluster_points for o in out) < 2):
+                or np.count_nonzero(np.diff(kept) >= self._min_cluster_points) < 2):
             keep[:] = True
         a = across[keep]
         cut_w = np.where(np.isnan(a), 1.0,
