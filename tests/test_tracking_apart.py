@@ -161,10 +161,14 @@ def test_two_tracks_sharing_a_box_unseen_apart_become_one(scene_runs):
     track was born on it; once confirmed, the two split the box's one cluster between their
     predictions and took it in turns. With ``TrackerConfig.shared_scans`` the younger ends
     after four such sightings: 2 identity switches and converged at scan 36 (measured);
-    without it, 10 switches and scan 64."""
-    box = scene_runs("track-edge-box-away.toml", 70, 5, False)["box"]
+    without it, 10 switches and scan 64. With ``TrackerConfig.newton_recentre`` (default
+    since the twenty-seventh session: the refinement's minimiser changed) the first track
+    keeps the box on this seed (0 switches, scan 54, with or without the rule), so the
+    situation the rule is for is made here with the old minimiser path."""
+    box = scene_runs("track-edge-box-away.toml", 70, 5, False, newton_recentre=False)["box"]
     assert box["id_switches"] <= 2 and box["conv"] is not None, box
-    old = scene_runs("track-edge-box-away.toml", 70, 5, False, shared_scans=0)["box"]
+    old = scene_runs("track-edge-box-away.toml", 70, 5, False, newton_recentre=False,
+                     shared_scans=0)["box"]
     assert old["id_switches"] >= 5, old  # the failure, without the rule
 
 
