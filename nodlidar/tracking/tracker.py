@@ -60,10 +60,14 @@ the second scan on, the velocity from the entropy refinement (:func:`refine_moti
 ``warm_voxel_grid``); the Rényi sum uses every point of the window and at most as many
 pairs as ``max_points`` points have (``renyi_subsample``), each weighted by its incidence
 and, where a window's edge cuts the object's slice, by the speed across that edge
-(``window_cut_speed_m_s``). The velocity enters the filter
-with its calibrated covariance inflated by the window's overlap with the previous one, the
-birth prior forgotten at the first estimate (``velocity_fusion="overlap"``). The reported
-state (position, speed, heading, covariance of ``(x, y, vx, vy)``) is the filter's.
+(``window_cut_speed_m_s``); Newton's minimiser gathers its pairs again where its minimum
+leaves the region they were gathered for (``newton_recentre``). Where a window is cut and a
+moving circle explains it (``round_model``), the circle's velocity is fused with the
+entropy's, and the fused covariance is the measurement's (``round_fuse``,
+``round_filter_cov``). The velocity enters the filter with its calibrated covariance
+inflated by the window's overlap with the previous one, the birth prior forgotten at the
+first estimate (``velocity_fusion="overlap"``). The reported state (position, speed,
+heading, covariance of ``(x, y, vx, vy)``) is the filter's.
 """
 
 from __future__ import annotations
