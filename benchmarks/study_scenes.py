@@ -212,9 +212,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default=None,
                     help="cases whose name matches this regular expression (re.search: a "
                          "plain substring as before; '^x-' for names that start with x-)")
-    ap.add_argument("--extra", nargs="*", default=[])
+    # "extend": a flag given twice adds to the first (with nargs alone the second replaced
+    # the first, silently)
+    ap.add_argument("--extra", nargs="*", action="extend", default=[])
     ap.add_argument("--summary", action="store_true", help="only summarise OUT")
-    ap.add_argument("--set", nargs="*", default=[], metavar="tracker.FIELD=VALUE",
+    ap.add_argument("--set", nargs="*", action="extend", default=[], metavar="tracker.FIELD=VALUE",
                     help="TrackerConfig / SegmentConfig fields other than the defaults "
                          "(e.g. tracker.reacquire_moving=true segment.split_seen_apart_beams=0)")
     args = ap.parse_args(argv)
@@ -225,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
         if not eq or not dot or which not in overrides:
             ap.error(f"--set {item!r}: expected tracker.FIELD=VALUE or segment.FIELD=VALUE")
         overrides[which][name] = _value(val)
+    if args.summary and not args.out.exists():
+        ap.error(f"--summary: {args.out} does not exist (no runs to summarise)")
     done = set()
     if args.out.exists():
         for line in args.out.read_text().splitlines():

@@ -175,6 +175,20 @@ def test_study_scenes_runs_and_resumes(tmp_path):
     assert out.read_text().splitlines() == lines
 
 
+def test_the_harness_takes_every_set_flag_and_refuses_to_summarise_nothing(tmp_path):
+    # two --set flags: both apply (the second used to replace the first, silently), so a
+    # malformed first one is refused even with a well-formed second
+    root = Path(__file__).resolve().parents[1]
+    cmd = [sys.executable, str(root / "benchmarks" / "study_scenes.py"), str(tmp_path / "o.jsonl"),
+           "--summary", "--set", "tracker.newton_recentre", "--set", "tracker.round_fuse=true"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2 and "--set 'tracker.newton_recentre': expected" in p.stderr, p.stderr
+    # well-formed, but nothing to summarise: one line, no traceback
+    p = subprocess.run(cmd[:-4], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2 and "does not exist" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
+
+
 def test_the_held_out_style_scenes_load_and_are_listed():
     # benchmarks/heldout: scenes the harness runs only with --extra; kept loadable as the
     # scene format evolves, each listed once with the scans its comment asks for
