@@ -160,15 +160,9 @@ def _seen_numpy(p_xy, dt, edges, i, j, c, tol_m=1e-3):
     return seen
 
 
-def test_seen_by_both_is_the_numpy_test():
-    # random cut lines on a third of the points (two per point, some with one only), both
-    # sides, points near the lines (within the tolerance too)
-    from nodlidar.tracking.motion import _seen_by_both
-
-    rng = np.random.default_rng(4)
-    n, m = 600, 50_000
-    p = rng.uniform(-0.5, 0.5, (n, 2))
-    t = rng.uniform(0, 2, n)
+def _cut_lines(rng, n):
+    """Random cut lines on a third of ``n`` points (two per point, some with one only),
+    both sides: (n, 2, 6) as segment.cut_edges gives them."""
     ang = rng.uniform(0, 2 * np.pi, (n, 2))
     edges = np.full((n, 2, 6), np.nan)
     edges[:, :, 0:2] = rng.uniform(-0.3, 0.3, (n, 2, 2))
@@ -176,13 +170,95 @@ def test_seen_by_both_is_the_numpy_test():
     edges[:, :, 4] = rng.choice([-1.0, 1.0], (n, 2))
     edges[rng.random(n) < 0.66, :, 4] = np.nan
     edges[rng.random(n) < 0.2, 1, 4] = np.nan
+    return edges
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+@pytest.mark.parametrize("cut", [False, True])
+def test_pair_terms_are_the_numpy_terms(weighted, cut):
+    # points near random cut lines (within the tolerance too), random pairs: the time
+    # offsets, the pair weights times the cut-line test, and the longest offset kept,
+    # against the numpy formulas RenyiCost used (as they stood)
+    from nodlidar.tracking.motion import _pair_terms
+
+    rng = np.random.default_rng(4)
+    n, m = 600, 50_000
+    p = rng.uniform(-0.5, 0.5, (n, 2))
+    t = rng.uniform(0, 2, n)
+    wt = rng.uniform(0.2, 4.0, n) if weighted else None
+    edges = _cut_lines(rng, n) if cut else None
     i = rng.integers(0, n, m)
     j = rng.integers(0, n, m)
-    dt = t[j] - t[i]
     c = np.array([0.31, -0.12])
-    got = _seen_by_both(p, dt, edges, i, j, c)
-    want = _seen_numpy(p, dt, edges, i, j, c)
-    assert 0.1 < got.mean() < 0.95 and np.array_equal(got, want)
+    dt32, pw, dt_kept = _pair_terms(i, j, t, wt, p, edges, c)
+    dt = t[j] - t[i]
+    assert dt32.dtype == np.float32 and np.array_equal(dt32, dt.astype(np.float32))
+    want = np.ones(m, np.float32) if wt is None else (wt[i] * wt[j]).astype(np.float32)
+    seen = np.ones(m, bool)
+    if cut:
+        seen = _seen_numpy(p, dt, edges, i, j, c)
+        assert 0.1 < seen.mean() < 0.95  # the test has both answers to get right
+        want = seen.astype(np.float32) if wt is None else want * seen
+    assert pw.dtype == np.float32 and np.array_equal(pw, want)
+    assert dt_kept == float(np.max(np.abs(dt[seen]), initial=0.0))
+
+
+def _components_numpy(points, eps):
+    """cluster_points' graph as numpy built it (before the kernel): the pairs within the
+    larger of their two radii, then connected_labels."""
+    from scipy.spatial import cKDTree
+
+    from nodlidar.tracking.segment import connected_labels
+
+    pairs = cKDTree(points).query_pairs(float(eps.max()), output_type="ndarray")
+    if np.ptp(eps) > 0 and len(pairs):
+        d = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
+        pairs = pairs[d <= np.maximum(eps[pairs[:, 0]], eps[pairs[:, 1]])]
+    return connected_labels(len(points), pairs[:, 0], pairs[:, 1]), pairs
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_linked_labels_are_the_numpy_components(dim):
+    # clouds of random size and density, radii per point or one for all (no distance
+    # check), and pairs at exactly a point's radius: the kernel's labels against numpy's
+    from scipy.spatial import cKDTree
+
+    from nodlidar.tracking._kernel import linked_labels
+
+    rng = np.random.default_rng(dim)
+    checked = 0
+    for trial in range(60):
+        n = int(rng.integers(1, 1500))
+        pts = rng.random((n, dim)) * rng.uniform(0.3, 4.0)
+        eps = rng.uniform(0.02, 0.12, n) if trial % 3 else np.full(n, 0.07)
+        if n > 1 and trial % 3:
+            eps[0] = eps[1] = float(np.linalg.norm(pts[0] - pts[1]))  # on the boundary
+        want, kept = _components_numpy(pts, eps)
+        pairs = cKDTree(pts).query_pairs(float(eps.max()), output_type="ndarray")
+        got = linked_labels(pts, np.ascontiguousarray(pairs[:, 0], np.int64),
+                            np.ascontiguousarray(pairs[:, 1], np.int64), eps,
+                            bool(np.ptp(eps) > 0))
+        assert got.dtype == np.int64 and np.array_equal(got, want), trial
+        checked += len(pairs) - len(kept)
+    assert checked > 1000  # the distance check dropped pairs
+
+
+def test_slot_index_merge_is_the_numpy_index():
+    # a window's scans coming and going (slots reused, empty scans, repeated keys): the
+    # compiled merge's index against the numpy search-and-insert, after every put
+    from nodlidar.tracking.voxels import _SlotIndex
+
+    rng = np.random.default_rng(5)
+    merged, numpy_ = _SlotIndex(), _SlotIndex(compiled=False)
+    for _ in range(2000):
+        slot = int(rng.integers(0, 64))
+        keys = np.unique(rng.integers(-5000, 20000, int(rng.choice([0, 1, 7, 300, 3000]))))
+        merged.put(slot, keys)
+        numpy_.put(slot, keys)
+        assert np.array_equal(merged.keys, numpy_.keys)
+        assert np.array_equal(merged.mask, numpy_.mask)
+        assert merged.keys.dtype == np.int64 and merged.mask.dtype == np.uint64
+    assert len(merged.keys) > 10_000
 
 
 def test_warm_up_compiles_what_tracking_calls(design, monkeypatch):
@@ -194,7 +270,7 @@ def test_warm_up_compiles_what_tracking_calls(design, monkeypatch):
     from nodlidar.tracking.tracker import Tracker, TrackerConfig
 
     warm_up()
-    names = ("ray_sample_keys", "pairs_within", "seen_by_both")
+    names = ("ray_sample_keys", "pairs_within", "pair_terms", "linked_labels", "slot_merge")
     kernels = [getattr(_kernel, n) for n in names]
     before = [list(k.signatures) for k in kernels]
     calls = dict.fromkeys(names, 0)

@@ -8,14 +8,19 @@ passes over one large temporary each.
   its cutoff, with their offsets (:class:`~nodlidar.tracking.motion.RenyiCost`): ~10
   passes over ~320 k drawn pairs, most of them dropped, in numpy;
 - :func:`seen_by_both`: which of those pairs both scans could see (the cut lines' test of
-  :func:`~nodlidar.tracking.motion._seen_by_both`), ~15 passes per line in numpy.
+  :func:`~nodlidar.tracking.motion._pair_terms`), ~15 passes per line in numpy, and
+  :func:`pair_terms`: the per-pair time offsets and weights the cost keeps, with it;
+- :func:`linked_labels`: the segmentation's clusters, the connected components of the
+  neighbour pairs within their radii (:func:`~nodlidar.tracking.segment.cluster_points`);
+- :func:`slot_merge`: the windowed voxel map's index of which kept scans traversed (or
+  hit) each voxel, updated in one merge (:class:`~nodlidar.tracking.voxels._SlotIndex`);
 - :func:`circle_normal_equations`: one Gauss-Newton step's normal equations of the round
   model (:func:`~nodlidar.tracking.round_motion.fit_moving_circle`), one pass over the
   window's points instead of ~15 numpy passes and a matrix product per step. This one has
   no numpy twin to match bit for bit (its sums run in point order, a matrix product's do
   not): tests/test_round_motion.py checks it against the numpy Jacobian to 1e-9.
 
-Every value is the one the numpy formulas gave: the same float64 operations in the same
+Every value is the one the numpy formulas gave: the same float operations in the same
 order (numba without fastmath: no reordering, no fused multiply-add), checked bit for bit
 against them in tests/test_tracking_kernel.py. numba is imported here only, and this
 module only inside the functions that use it (``import nodlidar`` never loads it).
@@ -28,8 +33,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["ray_sample_keys", "pairs_within", "seen_by_both", "circle_normal_equations",
-           "circle_start_sums", "circle_residual_stats", "warm_up"]
+__all__ = ["ray_sample_keys", "pairs_within", "seen_by_both", "pair_terms", "linked_labels",
+           "slot_merge", "circle_normal_equations", "circle_start_sums", "circle_residual_stats",
+           "warm_up"]
 
 _jit = numba.njit(cache=True, nogil=True)
 # inlined at numba's IR level (a call to a separate compiled function costs ~13 ns)
@@ -207,7 +213,7 @@ def pairs_within(qx: np.ndarray, qy: np.ndarray, qz: np.ndarray, i: np.ndarray,
 def seen_by_both(px: np.ndarray, py: np.ndarray, dt: np.ndarray, edges: np.ndarray,
                  i: np.ndarray, j: np.ndarray, cx: float, cy: float,
                  tol_m: float) -> np.ndarray:
-    """(m,) bool: :func:`~nodlidar.tracking.motion._seen_by_both`'s test, pair by pair: for
+    """(m,) bool: :func:`~nodlidar.tracking.motion._pair_terms`' cut-line test, pair by pair: for
     each cut line ``k`` of the other point (``edges[o, k, :5]`` = anchor x, y, direction
     x, y, seen side; NaN side: no line), the point moved at ``(cx, cy)`` to the other's
     time lies on the seen side within ``tol_m`` [m]."""
@@ -240,6 +246,116 @@ def seen_by_both(px: np.ndarray, py: np.ndarray, dt: np.ndarray, edges: np.ndarr
                 ok &= not (edges[po, k, 4] * cross < -tol_m)
         seen[p] = ok
     return seen
+
+
+@_jit
+def pair_terms(i: np.ndarray, j: np.ndarray, t: np.ndarray, wt: np.ndarray, weigh: bool,
+               px: np.ndarray, py: np.ndarray, edges: np.ndarray, cut: bool, cx: float,
+               cy: float, tol_m: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The per-pair terms a :class:`~nodlidar.tracking.motion.RenyiCost` keeps, in one
+    compiled pass over its pairs ``(i, j)`` (m,) int64: ``dt = t[j] - t[i]`` [s] as
+    float32; the pair weights ``wt[i] wt[j]`` (with ``weigh``) times :func:`seen_by_both`
+    (with ``cut``; the other arguments as there), as float32 (m,) (ones where neither; the
+    caller then keeps none); and the longest ``|dt|`` of a pair kept (seen) [s]. The same
+    float operations as numpy's gathers, casts and products."""
+    m = len(i)
+    dt = np.empty(m)
+    for k in range(m):
+        dt[k] = t[j[k]] - t[i[k]]
+    seen = seen_by_both(px, py, dt, edges, i, j, cx, cy, tol_m) if cut else np.ones(m, np.bool_)
+    dt32 = np.empty(m, np.float32)
+    pw = np.empty(m, np.float32)
+    dt_kept = 0.0
+    for k in range(m):
+        dt32[k] = np.float32(dt[k])
+        w = np.float32(wt[i[k]] * wt[j[k]]) if weigh else np.float32(1.0)
+        pw[k] = w * np.float32(1.0 if seen[k] else 0.0)
+        if seen[k]:
+            dt_kept = max(dt_kept, abs(dt[k]))
+    return dt32, pw, dt_kept
+
+
+@_jit
+def slot_merge(keys: np.ndarray, mask: np.ndarray, bit: np.uint64,
+               new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`~nodlidar.tracking.voxels._SlotIndex.put` in one merge pass: ``bit`` leaves
+    every mask of the sorted unique ``keys`` (int64) and ``mask`` (uint64), the keys left
+    in no slot go, and the sorted unique ``new`` keys join with ``bit`` (or'd into a kept
+    key's mask). Returns the new (keys, mask), sorted; numpy took a search, two inserts
+    and ~6 further passes over the index."""
+    off = ~bit
+    out_k = np.empty(len(keys) + len(new), np.int64)
+    out_m = np.empty(len(keys) + len(new), np.uint64)
+    a = 0
+    b = 0
+    p = 0
+    while a < len(keys) or b < len(new):
+        if b == len(new) or (a < len(keys) and keys[a] < new[b]):
+            m = mask[a] & off
+            if m != 0:
+                out_k[p] = keys[a]
+                out_m[p] = m
+                p += 1
+            a += 1
+        elif a == len(keys) or new[b] < keys[a]:
+            out_k[p] = new[b]
+            out_m[p] = bit
+            p += 1
+            b += 1
+        else:  # the same key: kept, with this slot's bit
+            out_k[p] = keys[a]
+            out_m[p] = (mask[a] & off) | bit
+            p += 1
+            a += 1
+            b += 1
+    return out_k[:p].copy(), out_m[:p].copy()
+
+
+@_inline
+def _root(parent: np.ndarray, a: int) -> int:
+    """The root of ``a``, halving the path on the way (each node then points two up)."""
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@_jit
+def linked_labels(points: np.ndarray, a: np.ndarray, b: np.ndarray, eps: np.ndarray,
+                  check: bool) -> np.ndarray:
+    """Connected components of the graph on the ``n`` rows of ``points`` (n, d) whose edges
+    are the pairs ``(a[k], b[k])`` - with ``check``, only those whose points lie within the
+    larger of their two ``eps`` (n,) [m], the distance as numpy's
+    ``np.linalg.norm(points[a] - points[b], axis=1)`` rounds it. (n,) int64 labels numbered
+    in the order of each component's smallest node, as
+    :func:`~nodlidar.tracking.segment.connected_labels` numbers them: union by the smaller
+    root keeps every root its component's smallest node."""
+    n = points.shape[0]
+    parent = np.arange(n)
+    for k in range(len(a)):
+        i, j = a[k], b[k]
+        if check:
+            d2 = 0.0
+            for c in range(points.shape[1]):
+                x = points[i, c] - points[j, c]
+                d2 += x * x
+            if not np.sqrt(d2) <= max(eps[i], eps[j]):
+                continue
+        ri, rj = _root(parent, i), _root(parent, j)
+        if ri < rj:
+            parent[rj] = ri
+        elif rj < ri:
+            parent[ri] = rj
+    lab = np.empty(n, np.int64)
+    c = 0
+    for i in range(n):
+        r = _root(parent, i)
+        if r == i:
+            lab[i] = c
+            c += 1
+        else:
+            lab[i] = lab[r]  # r < i: labelled already
+    return lab
 
 
 @_jit
@@ -345,6 +461,10 @@ def warm_up() -> None:
     idx32 = np.zeros(1, np.int32)
     pairs_within(one, one, one, idx32, idx32, 1.0, False)  # pairs drawn over all points
     seen_by_both(one, one, one, np.zeros((1, 2, 5)), idx, idx, 0.0, 0.0, 1e-3)
+    pair_terms(idx, idx, one, one, True, one, one, np.zeros((1, 2, 5)), True, 0.0, 0.0, 1e-3)
+    slot_merge(np.zeros(1, np.int64), np.ones(1, np.uint64), np.uint64(1), np.zeros(1, np.int64))
+    for d in (2, 3):  # the segmentation's points in the plane and in 3D
+        linked_labels(np.zeros((1, d)), idx, idx, one, True)
     circle_normal_equations(np.zeros((1, 2)), one, np.ones(1), idx, np.zeros((1, 2)),
                             np.zeros(2), 0.1, 2.0, np.zeros((1, 5, 5)), np.zeros((1, 5)))
     circle_start_sums(np.zeros((1, 2)), one, np.zeros(2))

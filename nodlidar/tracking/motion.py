@@ -389,19 +389,17 @@ class RenyiCost:
         self.dx, self.dy = dx.astype(np.float32), dy.astype(np.float32)
         self.dz2 = (np.zeros(len(i), np.float32) if dz is None
                     else (dz.astype(np.float32) ** 2).astype(np.float32))
-        dt = t[j] - t[i]
-        self.dt = dt.astype(np.float32)
         self.n_pairs = len(i)
         # point weights: the self terms sum w_i^2, each pair w_i w_j, normalised by (sum w)^2
-        # (all ones: the plain sum, n self terms over n^2)
-        self.pw = None if wt is None else (wt[i] * wt[j]).astype(np.float32)
+        # (all ones: the plain sum, n self terms over n^2), times whether both scans could
+        # see the pair (where the window has cut lines)
+        cut = ed is not None and len(i) > 0
+        self.dt, pw, dt_kept = _pair_terms(i, j, t, wt, p_xy, ed if cut else None,
+                                           np.asarray(center_velocity, float))
+        self.pw = pw if wt is not None or cut else None
         #: the longest time between the two points of a pair the sum keeps [s] (the motion
         #: is observed only through pairs of points seen at different times)
-        self.dt_kept_s = float(np.max(np.abs(dt), initial=0.0))
-        if ed is not None and len(i):
-            seen = _seen_by_both(p_xy, dt, ed, i, j, np.asarray(center_velocity, float))
-            self.pw = seen.astype(np.float32) if self.pw is None else self.pw * seen
-            self.dt_kept_s = float(np.max(np.abs(dt[seen]), initial=0.0))
+        self.dt_kept_s = float(dt_kept)
         self.s0 = float(self.n) if wt is None else float(np.sum(wt ** 2))
         self.norm = float(self.n) ** 2 if wt is None else float(np.sum(wt)) ** 2
         self.c = np.asarray(center_velocity, float)
@@ -430,21 +428,32 @@ class RenyiCost:
         return float(-np.log(s / self.norm))
 
 
-def _seen_by_both(p_xy: np.ndarray, dt: np.ndarray, edges: np.ndarray, i: np.ndarray,
-                  j: np.ndarray, c: np.ndarray, tol_m: float = 1e-3) -> np.ndarray:
-    """(m,) bool: for each pair ``(i, j)`` with ``dt = t[j] - t[i]`` (m,) [s], point ``i``
-    moved at velocity ``c`` to ``t[j]`` lies on the seen side of ``j``'s cut lines, and
-    ``j`` moved to ``t[i]`` of ``i``'s (``edges`` (n, L, >=5),
-    :func:`~nodlidar.tracking.segment.cut_edges`; NaN: no line), within ``tol_m``. One
-    compiled pass over the pairs (:func:`~nodlidar.tracking._kernel.seen_by_both`)."""
-    from ._kernel import seen_by_both  # numba: loaded when first used
+def _pair_terms(i: np.ndarray, j: np.ndarray, t: np.ndarray, wt: np.ndarray | None,
+                p_xy: np.ndarray, edges: np.ndarray | None, c: np.ndarray,
+                tol_m: float = 1e-3) -> tuple[np.ndarray, np.ndarray, float]:
+    """A Rényi cost's per-pair terms for the pairs ``(i, j)`` (m,) of points ``p_xy``
+    (n, 2) [m] at times ``t`` (n,) [s]:
 
-    return seen_by_both(np.ascontiguousarray(p_xy[:, 0], float),
-                        np.ascontiguousarray(p_xy[:, 1], float),
-                        np.ascontiguousarray(dt, float),
-                        np.ascontiguousarray(edges[:, :, :5], float),
-                        np.ascontiguousarray(i, np.int64), np.ascontiguousarray(j, np.int64),
-                        float(c[0]), float(c[1]), float(tol_m))
+    - ``dt = t[j] - t[i]``, (m,) float32 [s];
+    - the pair weights, (m,) float32: ``wt[i] wt[j]`` (ones without ``wt``), times whether
+      both scans could see the pair (with ``edges`` (n, L, >=5),
+      :func:`~nodlidar.tracking.segment.cut_edges`; NaN: no line): point ``i`` moved at
+      velocity ``c`` (2,) [m/s] to ``t[j]`` lies on the seen side of ``j``'s cut lines,
+      and ``j`` moved to ``t[i]`` of ``i``'s, within ``tol_m`` [m];
+    - the longest ``|dt|`` of a pair kept [s].
+
+    One compiled pass (:func:`~nodlidar.tracking._kernel.pair_terms`); numpy's gathers,
+    casts and products were ~8 passes over the pairs, the same numbers."""
+    from ._kernel import pair_terms  # numba: loaded when first used
+
+    one = np.ones(1)
+    ed = np.zeros((1, 1, 5)) if edges is None else np.ascontiguousarray(edges[:, :, :5], float)
+    return pair_terms(np.ascontiguousarray(i, np.int64), np.ascontiguousarray(j, np.int64),
+                      np.ascontiguousarray(t, float),
+                      one if wt is None else np.ascontiguousarray(wt, float), wt is not None,
+                      np.ascontiguousarray(p_xy[:, 0], float),
+                      np.ascontiguousarray(p_xy[:, 1], float), ed, edges is not None,
+                      float(c[0]), float(c[1]), float(tol_m))
 
 
 def _renyi_derivatives(cost: RenyiCost, velocity: ArrayLike) -> tuple[float, np.ndarray, np.ndarray]:

@@ -287,15 +287,24 @@ class _SlotIndex:
 
     ``put(slot, keys)`` replaces the slot's set (sorted unique keys); ``lookup(keys)`` gives
     each key's mask (0: in no slot). Work per ``put``: a few passes over the index, whose
-    size is the number of distinct voxels in the window (not the scans times their keys).
+    size is the number of distinct voxels in the window (not the scans times their keys):
+    one compiled merge (:func:`~nodlidar.tracking._kernel.slot_merge`), or with
+    ``compiled=False`` a search and two inserts in numpy (the same index).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, compiled: bool = True) -> None:
         self.keys = np.zeros(0, np.int64)
         self.mask = np.zeros(0, np.uint64)
+        self.compiled = compiled
 
     def put(self, slot: int, keys: np.ndarray) -> None:
         bit = np.uint64(1) << np.uint64(slot)
+        if self.compiled:
+            from ._kernel import slot_merge  # numba: loaded when first used
+
+            self.keys, self.mask = slot_merge(self.keys, self.mask, bit,
+                                              np.ascontiguousarray(keys, np.int64))
+            return
         if len(self.keys):
             self.mask &= ~bit  # the slot's previous scan leaves
             live = self.mask != 0
