@@ -207,3 +207,45 @@ def test_the_held_out_style_scenes_load_and_are_listed():
         text = (root / path).read_text()
         assert int(scans) == int(re.search(r"Run (\d+) scans", text).group(1)), entry
         assert load_scene(root / path).movers, entry
+
+
+@pytest.mark.slow
+def test_ab_tracking_runs_a_revision_beside_this_tree_and_compares_every_scan():
+    # this tree against itself as committed (HEAD; in CI's clean checkout, the same code):
+    # every scan's output identical, and the timing figures there; a revision that is not
+    # one, and a scene that does not exist, are one-line refusals
+    if subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"],
+                      capture_output=True).returncode:
+        pytest.fail("the repository's git history is needed (benchmarks/ab_tracking.py)")
+    ab = ROOT / "benchmarks" / "ab_tracking.py"
+    r = subprocess.run([sys.executable, str(ab), "--scans", "64", "--json"],
+                       capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    fig = json.loads(r.stdout.strip().splitlines()[-1])
+    assert fig["outputs_identical"] and fig["scans_timed"] == 4
+    assert fig["median_ratio"] > 0 and fig["base_median_ms"] > 0
+    for bad, says in ((["--base", "no-such-revision"], "--base 'no-such-revision'"),
+                      (["--scene", "no-such-scene"], "--scene 'no-such-scene'")):
+        r = subprocess.run([sys.executable, str(ab), *bad], capture_output=True, text=True,
+                           cwd=ROOT)
+        assert r.returncode != 0 and "Traceback" not in r.stderr
+        assert says in r.stderr.strip().splitlines()[-1]
+
+
+def test_ab_tracking_compares_not_a_number_as_equal():
+    # a track's speed is NaN before its first velocity: the same state twice compares equal
+    import importlib.util
+
+    import numpy as np
+
+    from nodlidar.tracking.tracker import TrackState
+
+    spec = importlib.util.spec_from_file_location("ab_tracking",
+                                                  ROOT / "benchmarks" / "ab_tracking.py")
+    ab = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ab)
+    s = [TrackState(1, 3, 0.25, 1.0, 2.0, float("nan"), float("nan"), np.eye(4), 2, 40, False)]
+    t = [TrackState(1, 3, 0.25, 1.0, 2.0, float("nan"), float("nan"), np.eye(4), 2, 40, False)]
+    assert ab._state_key(s) == ab._state_key(t)
+    t[0].cov[0, 0] = np.nextafter(1.0, 2.0)  # one bit off
+    assert ab._state_key(s) != ab._state_key(t)
