@@ -341,6 +341,29 @@ def test_a_maneuvers_estimate_confirms_the_centroids_lagging_line_fit():
     assert not agrees([0.35, 0.35], [0.31, 0.0], [0.0, 0.0])
 
 
+def test_a_reversal_within_the_latest_sightings_lags_the_line_more_than_twice():
+    """``_agrees``' ``lag_max`` (``TrackerConfig.maneuver_late_lag``), on the reversal of
+    ``grid 0.6 x 89.4`` (mirrors, seed 0, scan 52) [m/s]: the latest three sightings read
+    0.572 m/s at -90.7 deg, the six centroids' line 0.076 at 95.1, the track 0.594 at 89.3.
+    The estimate lies |est - v| / |vc - v| = 1.166 / 0.518 = 2.25 times as far from the
+    track's velocity as the line: beyond the two-fold bound, within three."""
+    from nodlidar.tracking.tracker import _agrees
+
+    def vel(speed, deg):
+        return speed * np.array([np.cos(np.radians(deg)), np.sin(np.radians(deg))])
+
+    est, vc, v = vel(0.572, -90.7), vel(0.076, 95.1), vel(0.594, 89.3)
+    ratio = np.hypot(*(est - v)) / np.hypot(*(vc - v))
+    np.testing.assert_allclose(ratio, 2.25, atol=0.01)  # hand-worked above, 3 digits given
+    assert not _agrees(est, vc, v, 0.15, 0.05)
+    assert _agrees(est, vc, v, 0.15, 0.05, lag_max=3.0)
+    assert not _agrees(est, vc, v, 0.15, 0.05, lag_max=2.2)
+    # the same lag, but the estimate 60 deg off the line's change: not the same change
+    assert not _agrees(vel(0.572, -30.0), vc, v, 0.15, 0.05, lag_max=3.0)
+    with pytest.raises(ParameterError, match="maneuver_late_lag = 1.5 .*> 2"):
+        TrackerConfig(maneuver_late_lag=1.5)
+
+
 def _labelled(k, blobs, dynamic, inconsistent, supported=None):
     """A real :class:`Segmented` of point blobs: blob ``j`` is cluster ``j``, dynamic when
     ``dynamic[j]``, its first ``inconsistent[j]`` points inconsistent."""

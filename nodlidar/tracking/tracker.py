@@ -571,6 +571,24 @@ class TrackerConfig:
         the two tracks crossed and swapped people 5 scans after the turn. A slow walker's
         right angle (0.13 m/s: 0.18 m/s of change) is left to the turn gate
         (``turn_reach_m``). 0: stops and starts only.
+    maneuver_late_lag : float
+        A turn at one speed (or a start) whose latest sightings' estimate lies beyond the
+        centroids' velocity by more than twice the line's change but at most this many
+        times: the line lags that much when the change came within the latest sightings'
+        span, so the oldest of them is (partly) from before it, and the motion restarts
+        with the ones after it only (one sighting fewer) - if the next sighting confirms
+        the change, by this test or the two-fold one again, or as a turn beyond the gates
+        (``turn_reach_m``). A reversal that the two-fold bound refused (``grid 0.6 x
+        89.4``, mirrors, seed 0: the latest three sightings read 0.572 m/s at -90.7 deg
+        against the track's 0.594 at 89.3, 2.25 times the line's change) was left to the
+        turn gate, restarted from one scan, read 0.72 m/s at 124 deg from two and lost
+        its track in the nod's blind part (converged 73; lifted 67); restarted here it
+        converged at 66. The same bound with the oldest sighting kept started a
+        reversing box slow (0.51-0.53 m/s for 0.59) and converged later or never
+        (docs/tracking.md "Twenty-eighth session"); without the next sighting's
+        confirmation a box whose face changed with the nod (``track-edge-box``, mirrors,
+        seed 4: its line read 0.03 m/s, its latest sightings a reversal) restarted and
+        converged at 68 instead of 27. 0: off.
     follow_supported_m_s : float
         A track moving at least this fast (filtered speed [m/s], and at least three
         standard deviations of it from zero: a track that coasted unseen is not sure to
@@ -814,6 +832,7 @@ class TrackerConfig:
     maneuver_m_s: float = 0.3
     maneuver_scans: int = 6
     maneuver_turn_deg: float = 40.0
+    maneuver_late_lag: float = 3.0
     incidence_weights: bool = True
     renyi_subsample: str = "pairs"
     renyi_pairs: str = "adaptive"
@@ -930,6 +949,8 @@ class TrackerConfig:
         require(self.ambiguous_chi2 >= 0, "ambiguous_chi2", self.ambiguous_chi2, ">= 0 (0: off)")
         require(self.turn_scans >= 1, "turn_scans", self.turn_scans, ">= 1")
         require(self.maneuver_m_s >= 0, "maneuver_m_s", self.maneuver_m_s, ">= 0 m/s (0: off)")
+        require(self.maneuver_late_lag == 0 or self.maneuver_late_lag > 2,
+                "maneuver_late_lag", self.maneuver_late_lag, "0 (off) or > 2")
         require(0 <= self.maneuver_turn_deg < 180, "maneuver_turn_deg", self.maneuver_turn_deg,
                 "0 (off) to < 180 deg")
         require(int(self.maneuver_scans) == self.maneuver_scans and self.maneuver_scans >= 3,
@@ -1077,6 +1098,10 @@ class _Track:
     # index of the sighting with which a track seen once was re-acquired after a gap
     # (TrackerConfig.reacquire_forget_scans); -1: never
     reacquired: int = -1
+    # a restart that lagged the line more than twice (TrackerConfig.maneuver_late_lag):
+    # (the number of sightings when it was seen, the start it would take), taken only if
+    # the next sighting confirms it
+    late: tuple[int, int] | None = None
 
     @property
     def cov(self) -> np.ndarray:
@@ -1104,15 +1129,16 @@ def _speed_changed(new: np.ndarray, old: np.ndarray, by_m_s: float,
 
 
 def _agrees(est: np.ndarray, vc: np.ndarray, v: np.ndarray, tol_m_s: float,
-            standing_m_s: float) -> bool:
+            standing_m_s: float, lag_max: float = 2.0) -> bool:
     """Whether a maneuver's entropy estimate ``est`` (2,) [m/s] of its latest sightings
     confirms the centroids' line-fit velocity ``vc`` against the filtered ``v``: within
     ``tol_m_s`` of it; or, for a start from standing (``v`` slower than ``standing_m_s``)
     or a turn at one speed (``est`` within 30 % of ``v``'s speed), beyond ``vc`` along the
-    same change (within 30 deg), up to twice as far from ``v``. The line fit lags a change
-    it spans only partly: a start three of its six sightings ago reads 0.63 of the new
-    velocity (11/17.5), two ago 0.37; the latest sightings alone read it whole. Not for a
-    change of speed while moving: a box leaving the view read a doubling in both."""
+    same change (within 30 deg), up to ``lag_max`` times as far from ``v``. The line fit
+    lags a change it spans only partly: a start three of its six sightings ago reads 0.63
+    of the new velocity (11/17.5), two ago 0.37; the latest sightings alone read it whole.
+    Not for a change of speed while moving: a box leaving the view read a doubling in
+    both."""
     if float(np.hypot(*(est - vc))) <= tol_m_s:
         return True
     s_v, s_e = float(np.hypot(*v)), float(np.hypot(*est))
@@ -1120,7 +1146,8 @@ def _agrees(est: np.ndarray, vc: np.ndarray, v: np.ndarray, tol_m_s: float,
         return False
     dc, de = vc - v, est - v
     nc, ne = float(np.hypot(*dc)), float(np.hypot(*de))
-    return nc > 0 and nc <= ne <= 2.0 * nc and float(dc @ de) >= np.cos(np.radians(30.0)) * nc * ne
+    return nc > 0 and nc <= ne <= lag_max * nc and \
+        float(dc @ de) >= np.cos(np.radians(30.0)) * nc * ne
 
 
 def _debiased(P: np.ndarray, Tp: np.ndarray, mo: MotionEstimate, cfg: TrackerConfig,
@@ -1711,7 +1738,9 @@ class Tracker:
         1`` sightings (this one added): their own entropy estimate confirms the
         centroids' velocity ``vc`` (:meth:`_maneuvered`): its speed too changed against
         the filtered one, and it is within ``maneuver_m_s / 2`` of ``vc``, or beyond it
-        where the line fit lags a start or a turn (:func:`_agrees`). A centroid
+        where the line fit lags a start or a turn (:func:`_agrees`); lagging by more than
+        twice (up to ``maneuver_late_lag``), it restarts with one sighting fewer, once the
+        next sighting confirms it (until then ``tr.late`` holds it). A centroid
         also moves when the part of the object seen changes (a box's face as the nod
         passes its top); the points' motion does not. If not, ``tr`` is as it was."""
         cfg = self.config
@@ -1720,11 +1749,22 @@ class Tracker:
         tr.start, tr.motion = len(tr.scans) - ((cfg.maneuver_scans - 1) // 2 + 1), None
         self._estimate(tr)
         if tr.motion is not None and _speed_changed(tr.motion.velocity, v, cfg.maneuver_m_s,
-                                                    cfg.maneuver_turn_deg) \
-                and _agrees(tr.motion.velocity, vc, v, cfg.maneuver_m_s / 2,
-                            cfg.confirm_speed_m_s):
-            tr.motion = None  # estimated afresh from the new start, as after a turn
-            return True
+                                                    cfg.maneuver_turn_deg):
+            est = tr.motion.velocity
+            if _agrees(est, vc, v, cfg.maneuver_m_s / 2, cfg.confirm_speed_m_s):
+                tr.motion = None  # estimated afresh from the new start, as after a turn
+                return True
+            if cfg.maneuver_late_lag > 0 and _agrees(est, vc, v, cfg.maneuver_m_s / 2,
+                                                     cfg.confirm_speed_m_s,
+                                                     lag_max=cfg.maneuver_late_lag):
+                # the line lags the change by more than twice: it began within the
+                # latest sightings' span, the oldest of them (partly) before it. A box's
+                # face changing with the nod reads so for one sighting: the next one
+                # must confirm it (here, or as a turn beyond the gates)
+                if tr.late is not None and tr.late[0] == len(tr.scans) - 1:
+                    tr.start, tr.motion, tr.late = tr.late[1], None, None
+                    return True
+                tr.late = (len(tr.scans), tr.start + 1)
         tr.start, tr.motion, tr.coarse = before
         return False
 
@@ -2246,8 +2286,10 @@ class Tracker:
         for a, bs in members.items():
             tr = self.tracks[ids[a]]
             if (a, bs[0]) in turned:
-                # the object turned: its motion starts afresh here (TrackerConfig.turn_reach_m)
-                tr.start, tr.motion = len(tr.scans), None
+                # the object turned: its motion starts afresh here (TrackerConfig.turn_reach_m),
+                # or where the previous sighting's lagging line placed the turn
+                late = tr.late is not None and tr.late[0] == len(tr.scans)
+                tr.start, tr.motion = tr.late[1] if late else len(tr.scans), None
             idx = np.concatenate([objs[b] for b in bs])
             c = scan.points[idx, :2].mean(axis=0)
             t = float(scan.t_s[idx].mean())
