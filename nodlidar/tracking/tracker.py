@@ -2288,8 +2288,10 @@ class Tracker:
             if (a, bs[0]) in turned:
                 # the object turned: its motion starts afresh here (TrackerConfig.turn_reach_m),
                 # or where the previous sighting's lagging line placed the turn
-                late = tr.late is not None and tr.late[0] == len(tr.scans)
-                tr.start, tr.motion = tr.late[1] if late else len(tr.scans), None
+                late = tr.late
+                tr.start = late[1] if late is not None and late[0] == len(tr.scans) \
+                    else len(tr.scans)
+                tr.motion = None
             idx = np.concatenate([objs[b] for b in bs])
             c = scan.points[idx, :2].mean(axis=0)
             t = float(scan.t_s[idx].mean())
