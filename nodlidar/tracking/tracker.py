@@ -588,7 +588,15 @@ class TrackerConfig:
         (docs/tracking.md "Twenty-eighth session"); without the next sighting's
         confirmation a box whose face changed with the nod (``track-edge-box``, mirrors,
         seed 4: its line read 0.03 m/s, its latest sightings a reversal) restarted and
-        converged at 68 instead of 27. 0: off.
+        converged at 68 instead of 27. A line of the sightings with two cut (all but two
+        uncut, where the maneuver test asks all but one) may propose such a restart, by
+        either bound, but never makes one: the mirrors' windows cut a 0.6 m/s mover at
+        135 deg in two of the six sightings around its reversal (``grid 0.6 x 135``,
+        mirrors, seed 0), the turn gate then restarted from one scan and the motion
+        converged after the nod's blind part (66); with the proposal the gate's restart
+        takes the two sightings after the turn and it converged at 56 (lifted 66).
+        Letting that line restart by itself cost 8 identity switches and a cart's
+        convergence over the harness. 0: off.
     follow_supported_m_s : float
         A track moving at least this fast (filtered speed [m/s], and at least three
         standard deviations of it from zero: a track that coasted unseen is not sure to
@@ -1706,21 +1714,22 @@ class Tracker:
             return
         tr.start, tr.motion, tr.coarse = before
 
-    def _maneuvered(self, tr: _Track) -> np.ndarray | None:
+    def _maneuvered(self, tr: _Track, cut: int = 1) -> np.ndarray | None:
         """The least-squares velocity (2,) [m/s] of the centroids of ``tr``'s last
         ``maneuver_scans`` sightings (this one added), all since its motion last started,
         of the slices no edge cut (a view's or window's edge, an occluder: an object seen
         in part moves its centroid), in all but one of them; if against it ``tr``'s speed
         more than halved or doubled, by more than ``maneuver_m_s``, or its heading turned
         by more than ``maneuver_turn_deg`` at one speed (:class:`TrackerConfig`). Else
-        None."""
+        None. ``cut``: the number of cut sightings allowed (2: a late restart's proposal
+        only, ``maneuver_late_lag``)."""
         cfg = self.config
         m = int(cfg.maneuver_scans)
         if cfg.maneuver_m_s <= 0 or tr.motion is None or len(tr.scans) - tr.start < m:
             return None
         C = np.asarray(tr.centroids_uncut[-m:])
         ok = np.isfinite(C[:, 0])
-        if np.count_nonzero(ok) < m - 1:
+        if np.count_nonzero(ok) < m - cut:
             return None
         C, tt = C[ok], np.asarray(tr.t_centroids[-m:])[ok]
         tt = tt - tt.mean()
@@ -1733,14 +1742,15 @@ class Tracker:
         return vc if _speed_changed(vc, tr.x[2:], cfg.maneuver_m_s,
                                     cfg.maneuver_turn_deg) else None
 
-    def _restarted(self, tr: _Track, vc: np.ndarray) -> bool:
+    def _restarted(self, tr: _Track, vc: np.ndarray, pending_only: bool = False) -> bool:
         """Whether ``tr``'s motion restarts with its latest ``(maneuver_scans - 1) // 2 +
         1`` sightings (this one added): their own entropy estimate confirms the
         centroids' velocity ``vc`` (:meth:`_maneuvered`): its speed too changed against
         the filtered one, and it is within ``maneuver_m_s / 2`` of ``vc``, or beyond it
         where the line fit lags a start or a turn (:func:`_agrees`); lagging by more than
         twice (up to ``maneuver_late_lag``), it restarts with one sighting fewer, once the
-        next sighting confirms it (until then ``tr.late`` holds it). A centroid
+        next sighting confirms it (until then ``tr.late`` holds it). ``pending_only``:
+        either agreement is only held for the next sighting to confirm. A centroid
         also moves when the part of the object seen changes (a box's face as the nod
         passes its top); the points' motion does not. If not, ``tr`` is as it was."""
         cfg = self.config
@@ -1752,6 +1762,10 @@ class Tracker:
                                                     cfg.maneuver_turn_deg):
             est = tr.motion.velocity
             if _agrees(est, vc, v, cfg.maneuver_m_s / 2, cfg.confirm_speed_m_s):
+                if pending_only:
+                    tr.late = (len(tr.scans), tr.start)
+                    tr.start, tr.motion, tr.coarse = before
+                    return False
                 tr.motion = None  # estimated afresh from the new start, as after a turn
                 return True
             if cfg.maneuver_late_lag > 0 and _agrees(est, vc, v, cfg.maneuver_m_s / 2,
@@ -1761,7 +1775,8 @@ class Tracker:
                 # latest sightings' span, the oldest of them (partly) before it. A box's
                 # face changing with the nod reads so for one sighting: the next one
                 # must confirm it (here, or as a turn beyond the gates)
-                if tr.late is not None and tr.late[0] == len(tr.scans) - 1:
+                if not pending_only and tr.late is not None and \
+                        tr.late[0] == len(tr.scans) - 1:
                     tr.start, tr.motion, tr.late = tr.late[1], None, None
                     return True
                 tr.late = (len(tr.scans), tr.start + 1)
@@ -2302,6 +2317,12 @@ class Tracker:
                     len(tr.scans) - tr.reacquired == cfg.reacquire_forget_scans:
                 self._forget_before_gap(tr)
             vc = None if (a, bs[0]) in turned else self._maneuvered(tr)
+            if vc is None and cfg.maneuver_late_lag > 0 and (a, bs[0]) not in turned:
+                # a line with one more cut sighting only proposes a restart: the next
+                # sighting must confirm it (as a late one)
+                vc2 = self._maneuvered(tr, cut=2)
+                if vc2 is not None:
+                    self._restarted(tr, vc2, pending_only=True)
             if vc is not None and self._restarted(tr, vc):
                 # it stopped or started: the window restarts with the sightings since
                 # (TrackerConfig.maneuver_m_s)
