@@ -84,3 +84,33 @@ def test_no_plain_cut_takes_the_balanced_fitting_one():
     want = min((2, 6), key=lambda i: (abs(fracs[i] - 0.5), i))
     assert c == cands[want][0]
     assert excess == 5.0 + c + 10.0
+
+
+def test_the_footprint_turn_does_not_hang_on_rounding():
+    """``printable._min_rect_angle``: a footprint and the same turned by 180 deg are one
+    rectangle, so the angle chosen (mod pi, in [-pi/4, 3 pi/4)) must not change when the
+    outline moves by 1e-7 mm (another machine's tessellation: the optimal design's base
+    was printed turned by 180 deg on one and not on another). Outline: a 150 x 90 mm plate
+    with a notch, turned by 30 deg; 40 draws of jitter."""
+    from nodlidar.cad.params import MountParams
+    from nodlidar.cad.printable import _min_rect_angle
+
+    P = MountParams()
+    xy0 = np.array([[0, 0], [150, 0], [150, 90], [100, 90], [100, 70], [60, 70], [60, 90],
+                    [0, 90]], float) - [75.0, 45.0]
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    xy0 = xy0 @ np.array([[c, s], [-s, c]])
+    rng = np.random.default_rng(0)
+    got = []
+    for _ in range(40):
+        xy = xy0 + rng.normal(0.0, 1e-7, xy0.shape)
+        a, w, d = _min_rect_angle(xy, P)
+        got.append(a)
+        # the rectangle itself: 150 x 90 mm (to the jitter's size: 1e-6 mm)
+        np.testing.assert_allclose([w, d], [150.0, 90.0], atol=1e-6)
+    got = np.array(got)
+    assert np.all((got >= -np.pi / 4) & (got < 3 * np.pi / 4)), got
+    # one angle for every draw (to the jitter's effect on the edge direction: 1e-8 rad)
+    np.testing.assert_allclose(got, got[0], atol=1e-8)
+    # and it undoes the 30 deg turn (-30 deg, within the jitter's 1e-8 rad)
+    np.testing.assert_allclose(got[0], -np.radians(30), atol=1e-6)

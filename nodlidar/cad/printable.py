@@ -153,25 +153,34 @@ def _min_rect_angle(xy: np.ndarray, params: MountParams) -> tuple[float, float, 
 
     Candidate angles: the directions of the convex hull's edges (a minimum-area rectangle
     has a side along one) and every degree. Returns ``(angle, w, d)``; prefers fitting.
+
+    The choice does not hang on rounding: a footprint turned by 180 deg is the same
+    rectangle (opposite hull edges give both), so the angle is taken modulo pi, in
+    [-pi/4, 3 pi/4); and areas within 1e-9 (relative) of the smallest are a tie, broken by
+    the smaller angle. Before, the two turns of one rectangle differed in area by the
+    last bits, and another machine's OCCT (1e-8 noise in the solid) printed the optimal
+    design's base turned by 180 deg.
     """
     from scipy.spatial import ConvexHull
 
     hull = xy[ConvexHull(xy).vertices]
     e = np.diff(np.vstack([hull, hull[:1]]), axis=0)
     cands = np.concatenate([-np.arctan2(e[:, 1], e[:, 0]), np.radians(np.arange(0, 180))])
-    best = None
+    rows = []
     for a in cands:
         c, s = np.cos(a), np.sin(a)
         p = hull @ np.array([[c, s], [-s, c]])
         w, d = np.ptp(p[:, 0]), np.ptp(p[:, 1])
         if w < d:  # the long side along the bed's x
             a, w, d = a + np.pi / 2, d, w
-        key = (not fits_bed(w, d, params), not (w <= params.bed_x_mm and d <= params.bed_y_mm),
-               w * d)
-        if best is None or key < best[0]:
-            best = (key, float(a), float(w), float(d))
-    assert best is not None
-    return best[1], best[2], best[3]
+        a = (a + np.pi / 4) % np.pi - np.pi / 4
+        rows.append((not fits_bed(w, d, params),
+                     not (w <= params.bed_x_mm and d <= params.bed_y_mm),
+                     float(w * d), float(a), float(w), float(d)))
+    first = min(r[:3] for r in rows)
+    ties = [r for r in rows if r[:2] == first[:2] and r[2] <= first[2] * (1 + 1e-9)]
+    _, _, _, a, w, d = min(ties, key=lambda r: r[3])
+    return a, w, d
 
 
 def print_orientation(shape: Any, params: MountParams) -> tuple[np.ndarray, Any, np.ndarray]:
