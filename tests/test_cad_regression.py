@@ -27,6 +27,11 @@ Floats are compared to 1e-6 relative (absolute in mm, mm^2, mm^3 near zero): 35 
 35 mm hinge offset, far below anything a change of the model or of its export makes, and
 above the library-version noise measured (7e-8).
 
+Regenerated 2026-12-08: the print footprint's turn was chosen by rounding between a
+rectangle and the same turned by 180 deg, and one machine's OCCT printed (and so split) the
+optimal design's base turned; the turn is now taken modulo pi (``printable._min_rect_angle``)
+and the pieces are cut in that frame.
+
 The preview image is not pinned (a raster of the same STL triangles, drawn by matplotlib).
 """
 
