@@ -1106,9 +1106,9 @@ class _Track:
     # index of the sighting with which a track seen once was re-acquired after a gap
     # (TrackerConfig.reacquire_forget_scans); -1: never
     reacquired: int = -1
-    # a restart that lagged the line more than twice (TrackerConfig.maneuver_late_lag):
-    # (the number of sightings when it was seen, the start it would take), taken only if
-    # the next sighting confirms it
+    # a restart held for the next sighting to confirm (TrackerConfig.maneuver_late_lag:
+    # the line lagged more than twice, or a line with two cut sightings proposed it):
+    # (the number of sightings when it was seen, the start it would take)
     late: tuple[int, int] | None = None
 
     @property
