@@ -1714,22 +1714,23 @@ class Tracker:
             return
         tr.start, tr.motion, tr.coarse = before
 
-    def _maneuvered(self, tr: _Track, cut: int = 1) -> np.ndarray | None:
+    def _maneuvered(self, tr: _Track) -> tuple[np.ndarray, bool] | None:
         """The least-squares velocity (2,) [m/s] of the centroids of ``tr``'s last
         ``maneuver_scans`` sightings (this one added), all since its motion last started,
         of the slices no edge cut (a view's or window's edge, an occluder: an object seen
         in part moves its centroid), in all but one of them; if against it ``tr``'s speed
         more than halved or doubled, by more than ``maneuver_m_s``, or its heading turned
-        by more than ``maneuver_turn_deg`` at one speed (:class:`TrackerConfig`). Else
-        None. ``cut``: the number of cut sightings allowed (2: a late restart's proposal
-        only, ``maneuver_late_lag``)."""
+        by more than ``maneuver_turn_deg`` at one speed (:class:`TrackerConfig`), with
+        False; with True where two of them were cut (a restart's proposal only,
+        ``maneuver_late_lag``). Else None."""
         cfg = self.config
         m = int(cfg.maneuver_scans)
         if cfg.maneuver_m_s <= 0 or tr.motion is None or len(tr.scans) - tr.start < m:
             return None
         C = np.asarray(tr.centroids_uncut[-m:])
         ok = np.isfinite(C[:, 0])
-        if np.count_nonzero(ok) < m - cut:
+        n_ok = int(np.count_nonzero(ok))
+        if n_ok < m - (2 if cfg.maneuver_late_lag > 0 else 1):
             return None
         C, tt = C[ok], np.asarray(tr.t_centroids[-m:])[ok]
         tt = tt - tt.mean()
@@ -1739,8 +1740,9 @@ class Tracker:
         vc = tt @ (C - C.mean(axis=0)) / s
         # stopped or started: the speed more than halved or doubled; or turned at one
         # speed (maneuver_turn_deg; a turn beyond the gates is turn_reach_m's)
-        return vc if _speed_changed(vc, tr.x[2:], cfg.maneuver_m_s,
-                                    cfg.maneuver_turn_deg) else None
+        if not _speed_changed(vc, tr.x[2:], cfg.maneuver_m_s, cfg.maneuver_turn_deg):
+            return None
+        return vc, n_ok < m - 1
 
     def _restarted(self, tr: _Track, vc: np.ndarray, pending_only: bool = False) -> bool:
         """Whether ``tr``'s motion restarts with its latest ``(maneuver_scans - 1) // 2 +
@@ -2316,14 +2318,10 @@ class Tracker:
             if cfg.reacquire_forget_scans > 0 and tr.start < tr.reacquired and \
                     len(tr.scans) - tr.reacquired == cfg.reacquire_forget_scans:
                 self._forget_before_gap(tr)
-            vc = None if (a, bs[0]) in turned else self._maneuvered(tr)
-            if vc is None and cfg.maneuver_late_lag > 0 and (a, bs[0]) not in turned:
-                # a line with one more cut sighting only proposes a restart: the next
-                # sighting must confirm it (as a late one)
-                vc2 = self._maneuvered(tr, cut=2)
-                if vc2 is not None:
-                    self._restarted(tr, vc2, pending_only=True)
-            if vc is not None and self._restarted(tr, vc):
+            man = None if (a, bs[0]) in turned else self._maneuvered(tr)
+            # a line with one more cut sighting only proposes a restart: the next
+            # sighting must confirm it (maneuver_late_lag)
+            if man is not None and self._restarted(tr, man[0], pending_only=man[1]):
                 # it stopped or started: the window restarts with the sightings since
                 # (TrackerConfig.maneuver_m_s)
                 prior = self._birth(c, t)
