@@ -315,8 +315,9 @@ def test_a_maneuver_is_a_stop_a_start_or_a_turn():
 
 def test_a_maneuvers_estimate_confirms_the_centroids_lagging_line_fit():
     """Tracker._restarted's agreement test (``_agrees``), on velocities [m/s] measured in
-    ``benchmarks/heldout/s-meet-stop.toml``, ``v-pacers.toml`` and
-    ``design/scenes/track-edge-box.toml``, ``track-edge-box-away.toml``."""
+    ``design/scenes/track-meet-stop.toml`` (held out as ``s-meet-stop`` then),
+    ``benchmarks/heldout/v-pacers.toml`` and ``design/scenes/track-edge-box.toml``,
+    ``track-edge-box-away.toml``."""
     from nodlidar.tracking.tracker import _agrees
 
     def agrees(est, vc, v):
@@ -362,6 +363,31 @@ def test_a_reversal_within_the_latest_sightings_lags_the_line_more_than_twice():
     assert not _agrees(vel(0.572, -30.0), vc, v, 0.15, 0.05, lag_max=3.0)
     with pytest.raises(ParameterError, match="maneuver_late_lag = 1.5 .*> 2"):
         TrackerConfig(maneuver_late_lag=1.5)
+
+
+def test_a_stop_lags_the_line_as_a_start_does():
+    """``_agrees``' ``stop`` (``TrackerConfig.maneuver_stop_lag``), on the stop of
+    ``design/scenes/track-stop-far.toml`` (lifted, seed 4, scan 43) [m/s]: the latest three
+    sightings read 0.088 m/s at -140.3 deg, the six centroids' line 0.532 at 41.8, the
+    track 1.095 at 42.9. The estimate is 2.10 times as far from the track's velocity as
+    the line, 1.3 deg off its change: a stop within the latest sightings' span, taken
+    (held for the next sighting) by the late bound, refused as a change of speed while
+    moving without ``stop``."""
+    from nodlidar.tracking.tracker import _agrees
+
+    def vel(speed, deg):
+        return speed * np.array([np.cos(np.radians(deg)), np.sin(np.radians(deg))])
+
+    est, vc, v = vel(0.088, -140.3), vel(0.532, 41.8), vel(1.095, 42.9)
+    ratio = np.hypot(*(est - v)) / np.hypot(*(vc - v))
+    np.testing.assert_allclose(ratio, 2.10, atol=0.01)  # from the three digits given
+    assert _agrees(est, vc, v, 0.15, 0.05, lag_max=3.0)
+    assert not _agrees(est, vc, v, 0.15, 0.05, lag_max=2.0)
+    assert not _agrees(est, vc, v, 0.15, 0.05, lag_max=3.0, stop=False)
+    # a stop read at 0.45 of the speed is a slowing, not a stop: refused
+    assert not _agrees(vel(0.49, 42.9), vel(0.75, 42.9), v, 0.15, 0.05, lag_max=3.0)
+    # a stop on the line's change at lag 1.5: taken by the two-fold bound too
+    assert _agrees(vel(0.25, 42.9), vel(0.532, 42.9), v, 0.15, 0.05)
 
 
 def _labelled(k, blobs, dynamic, inconsistent, supported=None):

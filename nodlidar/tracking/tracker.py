@@ -597,6 +597,37 @@ class TrackerConfig:
         takes the two sightings after the turn and it converged at 56 (lifted 66).
         Letting that line restart by itself cost 8 identity switches and a cart's
         convergence over the harness. 0: off.
+    maneuver_stop_lag : bool
+        A stop, too, may lie beyond the centroids' velocity by up to the lag bounds above
+        (the latest sightings' estimate under 30 % of the filtered speed), as a start from
+        standing and a turn at one speed may: the line lags a stop as it lags a start. A
+        person who walked away at 1.1 m/s and stopped 4.8 m out (lifted, seed 4: the
+        latest three sightings read 0.09 m/s, the line 0.53, the track 1.10) was refused,
+        left to the turn gate a scan later, and restarted from one scan; a two-scan window
+        of 12-point sightings read 0.49 m/s, and the track still read 0.16 m/s eight
+        scans into the stop. Restarted here with its three sightings it read 0.04.
+        (``design/scenes/track-stop-far.toml``; over the harness, with the two options
+        below, docs/tracking.md "Thirtieth session".)
+    maneuver_before : bool
+        The maneuver test also compares the line with the filtered velocity *before* the
+        line's first sighting, where that one was settled (the motion's window then held
+        ``maneuver_scans`` sightings or more, and the line lies wholly after the
+        motion's start by as many): the filter has taken in part of the change since,
+        through windows that mix the two motions, so a start or a stop slower than about
+        0.5 m/s never lay ``maneuver_m_s`` from the current velocity. A person who stood
+        3 s, then walked at 0.6 m/s (``design/scenes/track-start-still.toml``, mirrors,
+        seed 1) read a speed that ramped over 13 scans (0.10 -> 0.57 m/s) and converged
+        at 72; restarted at the 8th sighting of the walk it reads 0.59-0.60 from the
+        next and converged at 40.
+    maneuver_after_gap : bool
+        The line takes only the sightings since the track was last unseen for longer than
+        the line spans (more than ``maneuver_scans - 1`` times the sightings' median
+        spacing: the nod's blind part), and waits until they are
+        ``(maneuver_scans - 1) // 2 + 2``: across the gap it mixes the motion before
+        with the one after. Two people who stood 3 s and walked off while the nod looked
+        away (``design/scenes/track-meet-stop.toml``) read 0.16-0.26 m/s over five
+        sightings for 0.5, their tracks fell behind and lost them: an identity switch
+        in 6 of 16 runs, none with it.
     follow_supported_m_s : float
         A track moving at least this fast (filtered speed [m/s], and at least three
         standard deviations of it from zero: a track that coasted unseen is not sure to
@@ -841,6 +872,9 @@ class TrackerConfig:
     maneuver_scans: int = 6
     maneuver_turn_deg: float = 40.0
     maneuver_late_lag: float = 3.0
+    maneuver_stop_lag: bool = True
+    maneuver_before: bool = True
+    maneuver_after_gap: bool = True
     incidence_weights: bool = True
     renyi_subsample: str = "pairs"
     renyi_pairs: str = "adaptive"
@@ -1110,6 +1144,10 @@ class _Track:
     # the line lagged more than twice, or a line with two cut sightings proposed it):
     # (the number of sightings when it was seen, the start it would take)
     late: tuple[int, int] | None = None
+    # per sighting, (2,): the filtered velocity before it was taken, where the motion
+    # window then held maneuver_scans sightings or more (NaN: not settled; the
+    # maneuver test's reference, Tracker._maneuvered)
+    v_before: list = field(default_factory=list)
 
     @property
     def cov(self) -> np.ndarray:
@@ -1137,20 +1175,20 @@ def _speed_changed(new: np.ndarray, old: np.ndarray, by_m_s: float,
 
 
 def _agrees(est: np.ndarray, vc: np.ndarray, v: np.ndarray, tol_m_s: float,
-            standing_m_s: float, lag_max: float = 2.0) -> bool:
+            standing_m_s: float, lag_max: float = 2.0, stop: bool = True) -> bool:
     """Whether a maneuver's entropy estimate ``est`` (2,) [m/s] of its latest sightings
     confirms the centroids' line-fit velocity ``vc`` against the filtered ``v``: within
-    ``tol_m_s`` of it; or, for a start from standing (``v`` slower than ``standing_m_s``)
-    or a turn at one speed (``est`` within 30 % of ``v``'s speed), beyond ``vc`` along the
-    same change (within 30 deg), up to ``lag_max`` times as far from ``v``. The line fit
-    lags a change it spans only partly: a start three of its six sightings ago reads 0.63
-    of the new velocity (11/17.5), two ago 0.37; the latest sightings alone read it whole.
-    Not for a change of speed while moving: a box leaving the view read a doubling in
-    both."""
+    ``tol_m_s`` of it; or, for a start from standing (``v`` slower than ``standing_m_s``),
+    a turn at one speed (``est`` within 30 % of ``v``'s speed) or, with ``stop``, a stop
+    (``est`` under 30 % of it), beyond ``vc`` along the same change (within 30 deg), up
+    to ``lag_max`` times as far from ``v``. The line fit lags a change it spans only
+    partly: a start three of its six sightings ago reads 0.63 of the new velocity
+    (11/17.5), two ago 0.37; the latest sightings alone read it whole. Not for a change
+    of speed while moving: a box leaving the view read a doubling in both."""
     if float(np.hypot(*(est - vc))) <= tol_m_s:
         return True
     s_v, s_e = float(np.hypot(*v)), float(np.hypot(*est))
-    if not (s_v < standing_m_s or abs(s_e - s_v) <= 0.3 * s_v):
+    if not (s_v < standing_m_s or abs(s_e - s_v) <= 0.3 * s_v or (stop and s_e <= 0.3 * s_v)):
         return False
     dc, de = vc - v, est - v
     nc, ne = float(np.hypot(*dc)), float(np.hypot(*de))
@@ -1714,25 +1752,41 @@ class Tracker:
             return
         tr.start, tr.motion, tr.coarse = before
 
-    def _maneuvered(self, tr: _Track) -> tuple[np.ndarray, bool] | None:
+    def _maneuvered(self, tr: _Track) -> tuple[np.ndarray, bool, np.ndarray] | None:
         """The least-squares velocity (2,) [m/s] of the centroids of ``tr``'s last
-        ``maneuver_scans`` sightings (this one added), all since its motion last started,
-        of the slices no edge cut (a view's or window's edge, an occluder: an object seen
-        in part moves its centroid), in all but one of them; if against it ``tr``'s speed
-        more than halved or doubled, by more than ``maneuver_m_s``, or its heading turned
-        by more than ``maneuver_turn_deg`` at one speed (:class:`TrackerConfig`), with
-        False; with True where two of them were cut (a restart's proposal only,
-        ``maneuver_late_lag``). Else None."""
+        ``maneuver_scans`` sightings (this one added), all since its motion last started
+        (with ``maneuver_after_gap``, only those since its last gap longer than they span,
+        if at least ``(maneuver_scans - 1) // 2 + 2``), of the slices no edge cut (a view's
+        or window's edge, an occluder: an object seen in part moves its centroid), in all
+        but one of them; if against it ``tr``'s speed more than halved or doubled, by more
+        than ``maneuver_m_s``, or its heading turned by more than ``maneuver_turn_deg`` at
+        one speed (:class:`TrackerConfig`) - against the filtered velocity, or with
+        ``maneuver_before`` the settled one before the line's first sighting - with False
+        (True where two of them were cut: a restart's proposal only,
+        ``maneuver_late_lag``) and that velocity (2,) [m/s]. Else None."""
         cfg = self.config
         m = int(cfg.maneuver_scans)
         if cfg.maneuver_m_s <= 0 or tr.motion is None or len(tr.scans) - tr.start < m:
             return None
         C = np.asarray(tr.centroids_uncut[-m:])
+        tt = np.asarray(tr.t_centroids[-m:])
+        n = m  # the line's sightings
+        if cfg.maneuver_after_gap:
+            # only the sightings since the track was last unseen for longer than the line
+            # spans (the nod's blind part): across it, the line mixes the motion before
+            # with the one after (TrackerConfig.maneuver_after_gap)
+            dt = np.diff(tt)
+            gap = np.flatnonzero(dt > (m - 1) * float(np.median(dt)))
+            if len(gap):
+                k = int(gap[-1]) + 1
+                if m - k < (m - 1) // 2 + 2:
+                    return None
+                C, tt, n = C[k:], tt[k:], m - k
         ok = np.isfinite(C[:, 0])
         n_ok = int(np.count_nonzero(ok))
-        if n_ok < m - (2 if cfg.maneuver_late_lag > 0 else 1):
+        if n_ok < n - (2 if cfg.maneuver_late_lag > 0 else 1):
             return None
-        C, tt = C[ok], np.asarray(tr.t_centroids[-m:])[ok]
+        C, tt = C[ok], tt[ok]
         tt = tt - tt.mean()
         s = float(tt @ tt)
         if s <= 0:
@@ -1740,16 +1794,28 @@ class Tracker:
         vc = tt @ (C - C.mean(axis=0)) / s
         # stopped or started: the speed more than halved or doubled; or turned at one
         # speed (maneuver_turn_deg; a turn beyond the gates is turn_reach_m's)
-        if not _speed_changed(vc, tr.x[2:], cfg.maneuver_m_s, cfg.maneuver_turn_deg):
-            return None
-        return vc, n_ok < m - 1
+        v = tr.x[2:]
+        if _speed_changed(vc, v, cfg.maneuver_m_s, cfg.maneuver_turn_deg):
+            return vc, n_ok < n - 1, v
+        # or against the settled velocity before the line's first sighting: the filter
+        # has taken in part of the change since (TrackerConfig.maneuver_before). That
+        # sighting lies n or more after the motion's start, so its entry was written
+        # after any restart that kept earlier sightings (they keep at most 3)
+        if cfg.maneuver_before and len(tr.scans) - tr.start >= 2 * n:
+            v = tr.v_before[-n]
+            if np.all(np.isfinite(v)) and _speed_changed(vc, v, cfg.maneuver_m_s,
+                                                         cfg.maneuver_turn_deg):
+                return vc, n_ok < n - 1, v
+        return None
 
-    def _restarted(self, tr: _Track, vc: np.ndarray, pending_only: bool = False) -> bool:
+    def _restarted(self, tr: _Track, vc: np.ndarray, pending_only: bool = False,
+                   v_ref: np.ndarray | None = None) -> bool:
         """Whether ``tr``'s motion restarts with its latest ``(maneuver_scans - 1) // 2 +
         1`` sightings (this one added): their own entropy estimate confirms the
         centroids' velocity ``vc`` (:meth:`_maneuvered`): its speed too changed against
-        the filtered one, and it is within ``maneuver_m_s / 2`` of ``vc``, or beyond it
-        where the line fit lags a start or a turn (:func:`_agrees`); lagging by more than
+        ``v_ref`` (the velocity the line changed from; None: the filtered one), and it is
+        within ``maneuver_m_s / 2`` of ``vc``, or beyond it where the line fit lags a
+        start, a stop or a turn (:func:`_agrees`); lagging by more than
         twice (up to ``maneuver_late_lag``), it restarts with one sighting fewer, once the
         next sighting confirms it (until then ``tr.late`` holds it). ``pending_only``:
         either agreement is only held for the next sighting to confirm. A centroid
@@ -1757,13 +1823,14 @@ class Tracker:
         passes its top); the points' motion does not. If not, ``tr`` is as it was."""
         cfg = self.config
         before = (tr.start, tr.motion, tr.coarse)
-        v = tr.x[2:].copy()
+        v = (tr.x[2:] if v_ref is None else v_ref).copy()
         tr.start, tr.motion = len(tr.scans) - ((cfg.maneuver_scans - 1) // 2 + 1), None
         self._estimate(tr)
         if tr.motion is not None and _speed_changed(tr.motion.velocity, v, cfg.maneuver_m_s,
                                                     cfg.maneuver_turn_deg):
             est = tr.motion.velocity
-            if _agrees(est, vc, v, cfg.maneuver_m_s / 2, cfg.confirm_speed_m_s):
+            if _agrees(est, vc, v, cfg.maneuver_m_s / 2, cfg.confirm_speed_m_s,
+                       stop=cfg.maneuver_stop_lag):
                 if pending_only:
                     tr.late = (len(tr.scans), tr.start)
                     tr.start, tr.motion, tr.coarse = before
@@ -1772,7 +1839,8 @@ class Tracker:
                 return True
             if cfg.maneuver_late_lag > 0 and _agrees(est, vc, v, cfg.maneuver_m_s / 2,
                                                      cfg.confirm_speed_m_s,
-                                                     lag_max=cfg.maneuver_late_lag):
+                                                     lag_max=cfg.maneuver_late_lag,
+                                                     stop=cfg.maneuver_stop_lag):
                 # the line lags the change by more than twice: it began within the
                 # latest sightings' span, the oldest of them (partly) before it. A box's
                 # face changing with the nod reads so for one sighting: the next one
@@ -1828,7 +1896,7 @@ class Tracker:
         else:
             par.start = len(par.scans)
         for name in ("points", "times", "mirrors", "truth", "weights", "sigma", "cut", "edges",
-                     "sensor_v", "scans", "centroids", "t_centroids", "centroids_uncut"):
+                     "sensor_v", "scans", "centroids", "t_centroids", "centroids_uncut", "v_before"):
             getattr(par, name).extend(getattr(tr, name))
         par.last_scan, par.n_points = tr.last_scan, par.n_points + tr.n_points
         par.motion, par.coarse, par.state, par.hidden = tr.motion, tr.coarse, tr.state, 0
@@ -2321,7 +2389,8 @@ class Tracker:
             man = None if (a, bs[0]) in turned else self._maneuvered(tr)
             # a line with one more cut sighting only proposes a restart: the next
             # sighting must confirm it (maneuver_late_lag)
-            if man is not None and self._restarted(tr, man[0], pending_only=man[1]):
+            if man is not None and self._restarted(tr, man[0], pending_only=man[1],
+                                                   v_ref=man[2]):
                 # it stopped or started: the window restarts with the sightings since
                 # (TrackerConfig.maneuver_m_s)
                 prior = self._birth(c, t)
@@ -2583,6 +2652,9 @@ class Tracker:
         if cfg.window_cut_mask == "edges":
             edges = np.where(edges[:, :, 5:6] == 1, np.nan, edges)  # occluders' lines out
         tr.edges.append(edges if cfg.window_cut_mask != "off" else None)
+        tr.v_before.append(tr.x[2:].copy() if tr.state is not None and tr.motion is not None
+                           and len(tr.scans) - tr.start >= cfg.maneuver_scans
+                           else np.full(2, np.nan))
         tr.scans.append(scan.scan)
         tr.centroids.append(np.asarray(c, float))
         tr.t_centroids.append(float(t))
